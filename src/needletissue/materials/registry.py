@@ -1,0 +1,175 @@
+"""Named materials with the reference study's values, and their FElupe constitutive models.
+
+Units: stresses and moduli in MPa, density in g/cm^3.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import felupe as fem
+
+from needletissue.errors import InputError, check_number
+from needletissue.materials.laws import mooney_rivlin_5
+
+# Isochoric laws: name -> (strain energy, parameter names).
+HYPERELASTIC_MODELS = {
+    "neo_hooke": (fem.neo_hooke, ("mu",)),
+    "mooney_rivlin": (fem.mooney_rivlin, ("C10", "C01")),
+    "mooney_rivlin_5": (mooney_rivlin_5, ("C10", "C01", "C20", "C11", "C02")),
+    "yeoh": (fem.yeoh, ("C10", "C20", "C30")),
+    "ogden": (fem.ogden, ("mu", "alpha")),
+}
+MODELS = (*HYPERELASTIC_MODELS, "elastic")
+
+# Bulk modulus of nearly incompressible tissue: K = 100 mu0, i.e. Poisson's ratio 0.495.
+# Stiff enough that volume change stays below ~1 % at the tissue stresses here, soft enough that
+# quadratic (P2) elements do not lock and Newton stays well conditioned (see docs/materials.md).
+TISSUE_BULK_RATIO = 100.0
+
+
+@dataclass(frozen=True)
+class Material:
+    """A named material. `model` is one of MODELS; `parameters` in MPa (alpha dimensionless)."""
+
+    name: str
+    model: str
+    parameters: dict = field(default_factory=dict)
+    density: float = 1.0  # g/cm^3
+    source: str = ""
+    bulk_modulus: float | None = None  # MPa; None -> documented default
+
+    def __post_init__(self):
+        if self.model not in MODELS:
+            raise InputError(f"{self.name}.model", f"unknown model {self.model!r}; known: {', '.join(MODELS)}")
+        check_number(f"{self.name}.density", self.density, gt=0)
+        if self.model == "elastic":
+            check_number(f"{self.name}.E", self.parameters.get("E"), gt=0)
+            check_number(f"{self.name}.nu", self.parameters.get("nu"), gt=-1, lt=0.5)
+        else:
+            names = HYPERELASTIC_MODELS[self.model][1]
+            missing = [n for n in names if n not in self.parameters]
+            if missing:
+                raise InputError(f"{self.name}.parameters", f"missing {', '.join(missing)} for model {self.model}")
+            if self.initial_shear_modulus <= 0:
+                raise InputError(f"{self.name}.parameters", "initial shear modulus must be > 0")
+
+    @property
+    def initial_shear_modulus(self) -> float:
+        """mu0 in MPa (small-strain shear modulus)."""
+        p = self.parameters
+        match self.model:
+            case "elastic":
+                return p["E"] / (2 * (1 + p["nu"]))
+            case "neo_hooke":
+                return float(p["mu"])
+            case "mooney_rivlin" | "mooney_rivlin_5":
+                return 2 * (p["C10"] + p["C01"])
+            case "yeoh":
+                return 2 * p["C10"]
+            case "ogden":
+                return float(sum(_as_list(p["mu"])))
+        raise AssertionError(self.model)
+
+    @property
+    def bulk(self) -> float:
+        """Bulk modulus K in MPa: explicit, from E and nu, or TISSUE_BULK_RATIO * mu0."""
+        if self.bulk_modulus is not None:
+            return self.bulk_modulus
+        if self.model == "elastic":
+            E, nu = self.parameters["E"], self.parameters["nu"]
+            return E / (3 * (1 - 2 * nu))
+        return TISSUE_BULK_RATIO * self.initial_shear_modulus
+
+    def isochoric(self):
+        """FElupe isochoric hyperelastic material (tissue laws only)."""
+        fun, names = HYPERELASTIC_MODELS[self.model]
+        kwargs = {n: self.parameters[n] for n in names}
+        if self.model == "ogden":
+            kwargs = {n: _as_list(v) for n, v in kwargs.items()}
+        return fem.Hyperelastic(fun, **kwargs)
+
+    def umat(self, bulk: float | None = None):
+        """FElupe material for a displacement-based solid: isochoric part plus volumetric part.
+
+        Stiff parts (bone, needle, clamp) are compressible Neo-Hooke with mu, K from E and nu:
+        identical to linear elasticity at small strain, and objective under the needle's large rotations.
+        """
+        K = self.bulk if bulk is None else bulk
+        if self.model == "elastic":
+            return fem.NeoHooke(mu=self.initial_shear_modulus, bulk=K)
+        return self.isochoric() & fem.Volumetric(bulk=K)
+
+
+def _as_list(v):
+    return [float(x) for x in v] if isinstance(v, (list, tuple)) else [float(v)]
+
+
+_BUILTIN = {
+    m.name: m
+    for m in (
+        Material(
+            "muscle", "mooney_rivlin_5",
+            dict(C10=0.08556, C01=-0.05841, C20=0.03900, C11=-0.02320, C02=0.00851),
+            density=1.06,
+            source="Paper Sec. 1.2.1 (its Ref. [12]); density: typical skeletal muscle (not given by the paper)",
+        ),
+        Material(
+            "adipose", "ogden", dict(mu=[1.1667e-3], alpha=[16.2]), density=0.92,
+            source="Paper Sec. 1.2.2 (Al-Dirini et al., its Ref. [14]); W = 2mu/alpha^2 convention (Eq. 7)",
+        ),
+        Material("cortical_bone", "elastic", dict(E=17000.0, nu=0.30), density=2.00, source="Paper Table 2"),
+        Material("cancellous_bone", "elastic", dict(E=150.0, nu=0.20), density=2.00, source="Paper Table 2"),
+        Material("needle", "elastic", dict(E=110000.0, nu=0.30), density=2.77,
+                 source="Paper Table 2 (titanium alloy bone needle)"),
+        Material("clamp", "elastic", dict(E=200000.0, nu=0.30), density=7.85,
+                 source="Paper Table 2 (structural steel clamper)"),
+    )
+}
+_USER: dict[str, Material] = {}
+
+
+def names() -> list[str]:
+    return [*_BUILTIN, *_USER]
+
+
+def get(name: str) -> Material:
+    """A named material; unknown names raise InputError listing the known ones."""
+    if isinstance(name, Material):
+        return name
+    try:
+        return _USER.get(name) or _BUILTIN[name]
+    except KeyError:
+        raise InputError("material", f"unknown material {name!r}; known: {', '.join(names())}") from None
+
+
+def register(material: Material) -> Material:
+    _USER[material.name] = material
+    return material
+
+
+def load_toml(path: str | Path) -> list[Material]:
+    """Register user materials from a TOML file of tables:
+
+    [my_fat]
+    model = "ogden"
+    parameters = { mu = [0.001], alpha = [18.0] }
+    density = 0.92
+    source = "my lab"
+    """
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(str(path), f"cannot read materials TOML: {exc}") from None
+    out = []
+    for name, table in data.items():
+        if not isinstance(table, dict) or "model" not in table:
+            raise InputError(f"{path}:{name}", "each material is a table with at least 'model' and 'parameters'")
+        unknown = set(table) - {"model", "parameters", "density", "source", "bulk_modulus"}
+        if unknown:
+            raise InputError(f"{path}:{name}", f"unknown fields {sorted(unknown)}")
+        out.append(register(Material(name=name, **table)))
+    return out

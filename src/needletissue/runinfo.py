@@ -1,0 +1,90 @@
+"""Reproducibility: atomic writes, package versions and run metadata next to every result."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+import tempfile
+from dataclasses import asdict, is_dataclass
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+_PACKAGES = (
+    "needletissue", "numpy", "scipy", "felupe", "tensortrax", "gmsh", "meshio", "pyvista",
+    "vtk", "SimpleITK", "nibabel", "scikit-image", "matplotlib", "dask", "distributed", "pydantic",
+)
+
+
+def versions() -> dict[str, str]:
+    """Installed versions of the packages that shape a result."""
+    out = {"python": sys.version.split()[0], "platform": platform.platform()}
+    for name in _PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def to_jsonable(obj):
+    """Dataclasses, NumPy arrays and scalars, Paths -> plain JSON types."""
+    if is_dataclass(obj) and not isinstance(obj, type):
+        return to_jsonable(asdict(obj))
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, float) and (obj != obj):
+        return None
+    return obj
+
+
+def write_atomic(path: str | Path, data: bytes | str) -> Path:
+    """Write to a temporary file in the same folder, then rename: never a half-written file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mode = "wb" if isinstance(data, bytes) else "w"
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, mode) as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_json(path: str | Path, obj) -> Path:
+    return write_atomic(path, json.dumps(to_jsonable(obj), indent=2) + "\n")
+
+
+def write_run_files(out_dir: str | Path, config, results) -> None:
+    """The three files every run leaves: resolved config (TOML), versions and results (JSON)."""
+    import tomli_w
+
+    out_dir = Path(out_dir)
+    cfg = to_jsonable(config)
+    write_atomic(out_dir / "config.toml", tomli_w.dumps(_drop_none(cfg)))
+    write_json(out_dir / "versions.json", versions())
+    write_json(out_dir / "results.json", results)
+
+
+def _drop_none(obj):
+    if isinstance(obj, dict):
+        return {k: _drop_none(v) for k, v in obj.items() if v is not None}
+    if isinstance(obj, list):
+        return [_drop_none(v) for v in obj]
+    return obj
