@@ -125,7 +125,9 @@ def tissue_surface(labels_img, label, *, smoothing_iterations: int = 20, passban
 def surfaces(seg, tissues: list[str] | None = None, *, smoothing_iterations: int = 20,
              target_edge_mm: float | None = None) -> TissueSurfaces:
     """Closed surfaces of each tissue of a Segmentation, with a watertight/manifold/volume report."""
-    names = list(seg.tissues) if tissues is None else list(tissues)
+    from needletissue.imaging.segment import NOT_MESHED
+
+    names = [n for n in seg.tissues if n not in NOT_MESHED] if tissues is None else list(tissues)
     unknown = [n for n in names if n not in seg.tissues]
     if unknown:
         raise InputError("tissues", f"unknown tissue(s) {unknown}; known: {list(seg.tissues)}")

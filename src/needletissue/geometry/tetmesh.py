@@ -32,7 +32,7 @@ class MeshConfig:
     size: float = 3.0                      # mm, target tetrahedron edge (paper: 3 mm tissue)
     min_dihedral: float = 10.0             # degrees, TetGen quality bound
     max_radius_edge: float = 2.0           # TetGen radius-edge ratio bound (-q)
-    regions: list[str] | None = None       # tissues to mesh (default: all)
+    regions: list[str] | None = None       # tissues to mesh (default: all but other_body)
     crop: tuple[float, ...] | None = None  # (xmin, xmax, ymin, ymax, zmin, zmax) LPS mm
 
     def validate(self) -> "MeshConfig":
@@ -179,8 +179,11 @@ class TetMesh:
 
 def _crop_and_coarsen(seg, cfg: MeshConfig):
     """Label array restricted to cfg.regions, cropped to cfg.crop, and the index offset/spacing used."""
+    from needletissue.imaging.segment import NOT_MESHED
+
     arr = seg.array()
-    names = list(seg.tissues) if cfg.regions is None else list(cfg.regions)
+    names = ([n for n in seg.tissues if n not in NOT_MESHED] if cfg.regions is None
+             else list(cfg.regions))
     unknown = [n for n in names if n not in seg.tissues]
     if unknown:
         raise InputError("regions", f"unknown region(s) {unknown}; known: {list(seg.tissues)}")

@@ -24,10 +24,16 @@ TS_MUSCLES = {
     84: ("gluteus_minimus", "left"), 85: ("gluteus_minimus", "right"),
     88: ("iliopsoas", "left"), 89: ("iliopsoas", "right"),
 }
+# bones.nii.gz: per-bone ids (only with an imported label map): fragments, fixed femoral sections, sites
+BONE_IDS = {"sacrum": 1, "hip_left": 2, "hip_right": 3, "femur_left": 4, "femur_right": 5}
 MUSCLE_NAMES = ("gluteus_maximus", "gluteus_medius", "gluteus_minimus", "iliopsoas")
 
 # Project label ids. Muscles with sides: <name>_left / <name>_right.
-TISSUE_IDS = {"cortical_bone": 1, "cancellous_bone": 2, "adipose": 3, "other_soft_tissue": 4, "muscle": 5}
+TISSUE_IDS = {"cortical_bone": 1, "cancellous_bone": 2, "adipose": 3, "other_soft_tissue": 4, "muscle": 5,
+              "other_body": 6}
+# inside the body but none of the tissues (organs, vessels, bowel gas): kept so that the body outline
+# is known (skin detection); not meshed by default
+NOT_MESHED = ("other_body",)
 _next = 10
 for _m in MUSCLE_NAMES:
     TISSUE_IDS[_m] = _next
@@ -82,6 +88,7 @@ class Segmentation:
     tissues: dict[str, int]
     source: str = ""
     stats: dict = field(default_factory=dict)
+    bones: object | None = None       # SimpleITK image of BONE_IDS (sacrum, hips, femurs) or None
 
     def array(self) -> np.ndarray:
         import SimpleITK as sitk
@@ -105,7 +112,13 @@ class Segmentation:
         sitk.WriteImage(self.labels, str(tmp), useCompression=True)
         tmp.replace(out_dir / "tissues.nii.gz")
         write_json(out_dir / "tissues.json", self.tissues)
-        return {"tissues": out_dir / "tissues.nii.gz", "table": out_dir / "tissues.json"}
+        paths = {"tissues": out_dir / "tissues.nii.gz", "table": out_dir / "tissues.json"}
+        if self.bones is not None:
+            tmp = out_dir / ".bones.tmp.nii.gz"
+            sitk.WriteImage(self.bones, str(tmp), useCompression=True)
+            tmp.replace(out_dir / "bones.nii.gz")
+            paths["bones"] = out_dir / "bones.nii.gz"
+        return paths
 
     @classmethod
     def load(cls, directory: str | Path) -> "Segmentation":
@@ -121,7 +134,10 @@ class Segmentation:
         except (ValueError, AttributeError, TypeError) as exc:
             raise InputError("DIR", f"{table}: not a tissue table name -> label id ({exc})") from None
         labels = read_image(img_path, "tissues")
-        return cls(labels=labels, tissues=tissues, source=str(directory))
+        bones = None
+        if (directory / "bones.nii.gz").is_file():
+            bones = read_labels(directory / "bones.nii.gz", reference=labels)
+        return cls(labels=labels, tissues=tissues, source=str(directory), bones=bones)
 
 
 def body_mask(hu: np.ndarray, threshold: float = -500.0) -> np.ndarray:
@@ -264,6 +280,10 @@ def segment_arrays(hu: np.ndarray, spacing_zyx, ts_labels: np.ndarray | None,
         used["other_soft_tissue"] = TISSUE_IDS["other_soft_tissue"]
     out = majority_filter(out, cfg.smooth_passes, fixed=(TISSUE_IDS["cortical_bone"],
                                                          TISSUE_IDS["cancellous_bone"]))
+    rest = body & (out == 0)
+    if rest.any():
+        out[rest] = TISSUE_IDS["other_body"]
+        used["other_body"] = TISSUE_IDS["other_body"]
     empty = [n for n, i in used.items() if not np.any(out == i)]
     if empty:
         raise InputError("segmentation", f"empty tissue(s): {', '.join(empty)}")
@@ -293,6 +313,13 @@ def segment(ct, labels=None, config: SegmentationConfig | None = None) -> Segmen
     img = sitk.GetImageFromArray(out)
     img.CopyInformation(ct_img)
     seg = Segmentation(labels=img, tissues=used, source=str(ct), stats=stats)
+    if ts is not None:
+        bones = np.zeros(ts.shape, np.uint8)
+        for ts_id, name in TS_BONES.items():
+            if ts_id in cfg.bone_ids:
+                bones[ts == ts_id] = BONE_IDS[name]
+        seg.bones = sitk.GetImageFromArray(bones)
+        seg.bones.CopyInformation(ct_img)
     seg.stats["volumes_mm3"] = seg.volumes_mm3()
     seg.stats["config"] = asdict(cfg)
     return seg
