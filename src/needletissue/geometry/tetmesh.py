@@ -34,6 +34,7 @@ class MeshConfig:
     max_radius_edge: float = 2.0           # TetGen radius-edge ratio bound (-q)
     regions: list[str] | None = None       # tissues to mesh (default: all but other_body)
     crop: tuple[float, ...] | None = None  # (xmin, xmax, ymin, ymax, zmin, zmax) LPS mm
+    coarsen: bool = True                   # block-majority coarsening of voxels finer than size
 
     def validate(self) -> "MeshConfig":
         check_number("size", self.size, gt=0.2, le=50)
@@ -205,6 +206,8 @@ def _crop_and_coarsen(seg, cfg: MeshConfig):
         start = lo
     # coarsen to the element size by a block majority when voxels are much smaller than elements
     f = np.maximum(1, np.floor(cfg.size / sp + 1e-9).astype(int))  # (x, y, z)
+    if not cfg.coarsen:
+        f[:] = 1
     if np.any(f > 1):
         fz, fy, fx = f[::-1]
         nz, ny, nx = (np.asarray(arr.shape) // (fz, fy, fx))
@@ -215,6 +218,8 @@ def _crop_and_coarsen(seg, cfg: MeshConfig):
     if not np.any(arr):
         raise InputError("regions", "nothing to mesh: the selected regions are empty in the crop box")
     present = set(np.unique(arr).tolist())
+    if cfg.regions is None:  # default: whatever the crop holds
+        names = [n for n in names if seg.tissues[n] in present]
     empty = [n for n in names if seg.tissues[n] not in present]
     if empty:
         raise InputError("regions", f"empty tissue(s) after crop/coarsening: {', '.join(empty)}")
