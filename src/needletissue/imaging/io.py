@@ -36,6 +36,7 @@ def read_image(path: str | Path, field: str = "image"):
             reader.SetFileNames(files)
             image = reader.Execute()  # applies RescaleSlope/Intercept -> HU
         else:
+            _check_nifti_spacing(path, field)
             image = sitk.ReadImage(str(path))
     except InputError:
         raise
@@ -46,6 +47,30 @@ def read_image(path: str | Path, field: str = "image"):
     if image.GetDimension() != 3:
         raise InputError(field, f"{path}: expected a 3D volume, got {image.GetDimension()}D")
     return image
+
+
+def _check_nifti_spacing(path: Path, field: str) -> None:
+    """ITK silently replaces a zero NIfTI pixdim by 1 mm: check the header ourselves."""
+    if not path.name.lower().endswith((".nii", ".nii.gz")):
+        return
+    import gzip
+    import struct
+
+    opener = gzip.open if path.name.lower().endswith(".gz") else open
+    try:
+        with opener(path, "rb") as f:
+            head = f.read(108)
+    except OSError:  # not a NIfTI after all: SimpleITK reports it below
+        return
+    if len(head) < 108:
+        return
+    end = "<" if struct.unpack("<i", head[:4])[0] in (348, 540) else ">"
+    if struct.unpack(f"{end}i", head[:4])[0] == 540:  # NIfTI-2: pixdim are doubles at 104
+        return
+    zooms = np.asarray(struct.unpack(f"{end}8f", head[76:108])[1:4], float)
+    if zooms.size < 3 or not np.all(np.isfinite(zooms)) or np.any(zooms <= 0):
+        raise InputError(field, f"{path}: voxel spacing missing or zero in the NIfTI header "
+                         f"(pixdim {tuple(zooms)}); must be > 0 mm")
 
 
 def check_geometry(image, what: str) -> None:

@@ -226,7 +226,7 @@ def majority_filter(labels: np.ndarray, passes: int, fixed=()) -> np.ndarray:
 
 
 def segment_arrays(hu: np.ndarray, spacing_zyx, ts_labels: np.ndarray | None,
-                   cfg: SegmentationConfig) -> tuple[np.ndarray, dict[str, int], dict]:
+                   cfg: SegmentationConfig, what: str = "CT") -> tuple[np.ndarray, dict[str, int], dict]:
     """Core of segment(): arrays in, (tissue label array uint8, name -> id, stats) out."""
     cfg.validate()
     spacing_zyx = np.asarray(spacing_zyx, float)
@@ -239,7 +239,7 @@ def segment_arrays(hu: np.ndarray, spacing_zyx, ts_labels: np.ndarray | None,
         body |= ts_labels > 0
         bone = np.isin(ts_labels, cfg.bone_ids)
         if not bone.any():
-            raise InputError("labels", f"none of the bone ids {list(cfg.bone_ids)} occur in the label map")
+            raise InputError(what, f"none of the bone ids {list(cfg.bone_ids)} occur in the label map")
         for ts_id, (name, side) in TS_MUSCLES.items():
             m = ts_labels == ts_id
             if not m.any():
@@ -257,7 +257,7 @@ def segment_arrays(hu: np.ndarray, spacing_zyx, ts_labels: np.ndarray | None,
         named = np.zeros_like(bone)
         source = "HU rules"
     if not bone.any():
-        raise InputError("CT", f"no bone found (HU >= {cfg.bone_hu})")
+        raise InputError(what, f"empty tissue: no bone found (HU >= {cfg.bone_hu})")
     cortical, cancellous, split_info = split_bone(bone, spacing_zyx, cfg.cortical_thickness,
                                                   cfg.split_spacing)
     out[cancellous] = TISSUE_IDS["cancellous_bone"]
@@ -275,7 +275,7 @@ def segment_arrays(hu: np.ndarray, spacing_zyx, ts_labels: np.ndarray | None,
     if ts_labels is None:
         out[soft] = TISSUE_IDS["muscle"]
         used["muscle"] = TISSUE_IDS["muscle"]
-    elif cfg.other_soft_tissue:
+    elif cfg.other_soft_tissue and soft.any():
         out[soft] = TISSUE_IDS["other_soft_tissue"]
         used["other_soft_tissue"] = TISSUE_IDS["other_soft_tissue"]
     out = majority_filter(out, cfg.smooth_passes, fixed=(TISSUE_IDS["cortical_bone"],
@@ -284,9 +284,11 @@ def segment_arrays(hu: np.ndarray, spacing_zyx, ts_labels: np.ndarray | None,
     if rest.any():
         out[rest] = TISSUE_IDS["other_body"]
         used["other_body"] = TISSUE_IDS["other_body"]
-    empty = [n for n, i in used.items() if not np.any(out == i)]
+    present = set(np.unique(out).tolist())
+    empty = [n for n, i in used.items() if i not in present]
     if empty:
-        raise InputError("segmentation", f"empty tissue(s): {', '.join(empty)}")
+        raise InputError(what, f"empty tissue(s) {', '.join(empty)}: no voxel left "
+                         f"(HU ranges: adipose {cfg.adipose_hu}, soft tissue {cfg.soft_tissue_hu})")
     used = dict(sorted(used.items(), key=lambda kv: kv[1]))
     stats = {"source": source, "bone_split": split_info, "body_volume_mm3": float(body.sum() * vox)}
     return out, used, stats
@@ -309,7 +311,10 @@ def segment(ct, labels=None, config: SegmentationConfig | None = None) -> Segmen
         ts = sitk.GetArrayFromImage(lab_img).astype(np.int32)
     hu = sitk.GetArrayFromImage(ct_img).astype(np.float32)
     spacing_zyx = np.asarray(ct_img.GetSpacing(), float)[::-1]
-    out, used, stats = segment_arrays(hu, spacing_zyx, ts, cfg)
+    what = f"CT {ct}" if isinstance(ct, (str, Path)) else "CT"
+    if labels is not None and isinstance(labels, (str, Path)):
+        what += f" / labels {labels}"
+    out, used, stats = segment_arrays(hu, spacing_zyx, ts, cfg, what)
     img = sitk.GetImageFromArray(out)
     img.CopyInformation(ct_img)
     seg = Segmentation(labels=img, tissues=used, source=str(ct), stats=stats)
