@@ -35,11 +35,14 @@ class MeshConfig:
     regions: list[str] | None = None       # tissues to mesh (default: all but other_body)
     crop: tuple[float, ...] | None = None  # (xmin, xmax, ymin, ymax, zmin, zmax) LPS mm
     coarsen: bool = True                   # block-majority coarsening of voxels finer than size
+    max_volume: float | None = None        # mm^3; None: bound only when size < voxel spacing
 
     def validate(self) -> "MeshConfig":
         check_number("size", self.size, gt=0.2, le=50)
         check_number("min_dihedral", self.min_dihedral, ge=0, lt=30)
         check_number("max_radius_edge", self.max_radius_edge, ge=1.1, le=10)
+        if self.max_volume is not None:
+            check_number("max_volume", self.max_volume, gt=0)
         if self.crop is not None:
             c = [check_number(f"crop[{i}]", v) for i, v in enumerate(self.crop)]
             if len(c) != 6 or c[0] >= c[1] or c[2] >= c[3] or c[4] >= c[5]:
@@ -229,9 +232,11 @@ def _crop_and_coarsen(seg, cfg: MeshConfig):
 def tet_mesh(seg, size: float = 3.0, config: MeshConfig | None = None, **kw) -> TetMesh:
     """Conforming multi-region tetrahedral mesh of a Segmentation (tissues -> named regions).
 
-    `size` (mm) bounds the tetrahedron volume by that of a regular tetrahedron with edge `size`; label
-    maps finer than `size` are first coarsened by a block majority. Extra solids (needles, clamp) enter
-    by painting their label into the label map before meshing (see geometry.solids).
+    Size control: label maps finer than `size` (mm) are coarsened by a block majority, so interface
+    triangles have edges of about `size`; inside, TetGen grades the elements under its quality bound.
+    When `size` is below the voxel spacing (or `max_volume` is given) the tetrahedron volume is bounded
+    by that of a regular tetrahedron of edge `size` (mean edge then about 0.9 `size`). Extra solids
+    (needles, clamp) enter by painting their label into the label map first (geometry.solids).
     """
     import SimpleITK as sitk
     import tetgen
@@ -254,11 +259,15 @@ def tet_mesh(seg, size: float = 3.0, config: MeshConfig | None = None, **kw) -> 
     plc = label_boundaries(grid)
     if plc.n_cells == 0:
         raise InputError("regions", "no interface to mesh")
+    bound = cfg.max_volume
+    if bound is None and cfg.size < 0.999 * sp.min():
+        bound = regular_tet_volume(cfg.size)
     tg = tetgen.TetGen(np.asarray(plc.points, float), np.asarray(plc.regular_faces, np.int32))
     try:
         nodes, elem, _, _ = tg.tetrahedralize(
             plc=True, quality=True, minratio=cfg.max_radius_edge, mindihedral=cfg.min_dihedral,
-            maxvolume=regular_tet_volume(cfg.size), quiet=True, nowarning=True)
+            fixedvolume=bound is not None, maxvolume=-1.0 if bound is None else float(bound),
+            quiet=True, nowarning=True)
     except RuntimeError as exc:
         raise InputError("mesh", f"TetGen failed on the tissue interfaces: {exc}") from None
     nodes = np.asarray(nodes, float)
