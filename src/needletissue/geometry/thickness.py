@@ -74,9 +74,9 @@ def thickness_along(seg, entry, direction, *, step_mm: float | None = None,
     size = np.asarray(img.GetSize())
     if max_length_mm is None:
         max_length_mm = float(np.linalg.norm(size * sp)) + float(np.linalg.norm(p0 - o)) + 10.0
-    t = np.arange(0.0, max_length_mm, step)
+    t = (np.arange(int(max_length_mm / step)) + 0.5) * step  # sample centres; boundaries at i*step
     pts = p0 + t[:, None] * d
-    idx = np.rint((pts - o) @ D / sp).astype(int)  # (i, j, k)
+    idx = np.floor((pts - o) @ D / sp + 0.5).astype(int)  # nearest voxel (i, j, k)
     inside = np.all((idx >= 0) & (idx < size), axis=1)
     lab = np.zeros(len(t), np.int32)
     lab[inside] = arr[idx[inside, 2], idx[inside, 1], idx[inside, 0]]
@@ -92,7 +92,9 @@ def thickness_along(seg, entry, direction, *, step_mm: float | None = None,
     i_skin = body[0]
     bones = np.flatnonzero(is_bone[i_skin:])
     i_end = i_skin + bones[0] if len(bones) else int(body[-1]) + 1
-    res.skin_mm = float(t[i_skin])
+    # boundaries sit halfway between the samples on either side (error <= step / 2)
+    half = lambda i: float(t[i] - step / 2)  # noqa: E731
+    res.skin_mm = half(i_skin)
     seg_lab = lab[i_skin:i_end]
     # run-length segments (boundaries halfway between samples)
     change = np.flatnonzero(np.diff(seg_lab)) + 1
@@ -100,14 +102,14 @@ def thickness_along(seg, entry, direction, *, step_mm: float | None = None,
     ends = np.r_[change, len(seg_lab)]
     for a, b in zip(starts, ends):
         name = names.get(int(seg_lab[a]), "unlabelled")
-        s0 = t[i_skin + a] - (step / 2 if a > 0 else 0.0)
-        s1 = t[i_skin + b] - step / 2 if i_skin + b < len(t) else t[-1]
+        s0 = half(i_skin + a)
+        s1 = half(i_skin + b) if i_skin + b < len(t) else float(t[-1])
         res.segments.append(PathSegment(name, float(s0), float(s1)))
         res.thickness_by_tissue[name] = res.thickness_by_tissue.get(name, 0.0) + float(s1 - s0)
     if len(bones):
         res.bone_hit = True
-        res.soft_tissue_thickness_mm = float(t[i_end] - step / 2 - t[i_skin])
-        res.bone_point = (p0 + (t[i_end] - step / 2) * d).tolist()
+        res.soft_tissue_thickness_mm = half(i_end) - res.skin_mm
+        res.bone_point = (p0 + half(i_end) * d).tolist()
     return res
 
 
