@@ -111,3 +111,26 @@ def test_crop_and_regions(boxes_mesh):
         tet_mesh(seg, config=MeshConfig(crop=(500, 600, 0, 10, 0, 10)))
     with pytest.raises(InputError, match="size"):
         MeshConfig(size=0).validate()
+
+
+def test_bone_surface_split_by_bone(boxes_mesh):
+    import SimpleITK as sitk
+
+    seg, _ = boxes_mesh
+    arr = seg.array()
+    bones = np.zeros_like(arr)
+    bone = arr == seg.tissues["cortical_bone"]
+    bones[bone] = 1                               # sacrum ...
+    bones[:, :, 8:][bone[:, :, 8:]] = 2           # ... and hip_left on the other half (split at i = 8)
+    img = sitk.GetImageFromArray(bones)
+    img.CopyInformation(seg.labels)
+    seg.bones = img
+    m = tet_mesh(seg, size=2.0)
+    a, b = m.surfaces["bone_surface_sacrum"], m.surfaces["bone_surface_hip_left"]
+    assert len(a) + len(b) == len(m.surfaces["bone_surface"])
+    area = lambda f: 0.5 * np.linalg.norm(np.cross(*(m.points[f][:, k] - m.points[f][:, 0]  # noqa: E731
+                                                     for k in (1, 2))), axis=1).sum()
+    # 8 mm bone cube split into two 4 x 8 x 8 mm halves: one 8 x 8 end face + four 4 x 8 sides each
+    assert area(a) == pytest.approx(64.0 + 4 * 32.0, rel=1e-9)
+    assert area(b) == pytest.approx(area(a), rel=1e-9)
+    seg.bones = None

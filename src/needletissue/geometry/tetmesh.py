@@ -288,7 +288,31 @@ def tet_mesh(seg, size: float = 3.0, config: MeshConfig | None = None, **kw) -> 
     mesh = TetMesh(points=points, cells=cells, regions=regions,
                    materials={n: material_for(n) for n in regions})
     mesh.surfaces = interface_surfaces(mesh)
+    if seg.bones is not None and "bone_surface" in mesh.surfaces:
+        mesh.surfaces.update(bone_surfaces_by_bone(mesh, seg.bones, 0.5 * float(sp.min())))
     return mesh
+
+
+def bone_surfaces_by_bone(mesh: TetMesh, bones_img, depth: float) -> dict[str, np.ndarray]:
+    """Split `bone_surface` by bone (bones.nii.gz): `bone_surface_sacrum`, `bone_surface_hip_left`, ...
+    for boundary conditions (fixed sacrum, femoral sections) and fragments. Each face is assigned the
+    bone found `depth` mm inside it."""
+    import SimpleITK as sitk
+
+    from needletissue.imaging.segment import BONE_IDS
+
+    faces = mesh.surfaces["bone_surface"]
+    p = mesh.points[faces]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    x = p.mean(1) - depth * n  # faces point out of the bone
+    D = np.asarray(bones_img.GetDirection(), float).reshape(3, 3)
+    sp = np.asarray(bones_img.GetSpacing(), float)
+    ijk = np.floor((x - np.asarray(bones_img.GetOrigin())) @ D / sp + 0.5).astype(int)
+    ijk = np.clip(ijk, 0, np.asarray(bones_img.GetSize()) - 1)
+    arr = sitk.GetArrayViewFromImage(bones_img)
+    bid = np.asarray(arr)[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+    return {f"bone_surface_{name}": faces[bid == i] for name, i in BONE_IDS.items() if np.any(bid == i)}
 
 
 def interface_surfaces(mesh: TetMesh) -> dict[str, np.ndarray]:
