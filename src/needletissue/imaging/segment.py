@@ -120,6 +120,29 @@ class Segmentation:
             paths["bones"] = out_dir / "bones.nii.gz"
         return paths
 
+    def bone_box(self, margin_mm: float = 30.0, bones=("sacrum", "hip_left", "hip_right")):
+        """(xmin, xmax, ymin, ymax, zmin, zmax) LPS mm around the given bones (bones.nii.gz) or, without
+        it, around all bone, widened by `margin_mm`: a crop box for a pelvic model."""
+        import SimpleITK as sitk
+
+        check_number("margin_mm", margin_mm, ge=0)
+        if self.bones is not None:
+            arr = sitk.GetArrayViewFromImage(self.bones)
+            mask = np.isin(arr, [BONE_IDS[b] for b in bones])
+        else:
+            arr = sitk.GetArrayViewFromImage(self.labels)
+            mask = np.isin(arr, [self.tissues[b] for b in ("cortical_bone", "cancellous_bone")
+                                 if b in self.tissues])
+        kji = np.argwhere(mask)
+        if len(kji) == 0:
+            raise InputError("crop", "no bone voxel to put a box around")
+        corners = np.array([[i, j, k] for i in (kji[:, 2].min(), kji[:, 2].max())
+                            for j in (kji[:, 1].min(), kji[:, 1].max())
+                            for k in (kji[:, 0].min(), kji[:, 0].max())], float)
+        pts = np.array([self.labels.TransformContinuousIndexToPhysicalPoint(c.tolist()) for c in corners])
+        lo, hi = pts.min(0) - margin_mm, pts.max(0) + margin_mm
+        return (lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
+
     @classmethod
     def load(cls, directory: str | Path) -> "Segmentation":
         from needletissue.imaging.io import read_image
