@@ -141,7 +141,7 @@ class Segmentation:
                             for k in (kji[:, 0].min(), kji[:, 0].max())], float)
         pts = np.array([self.labels.TransformContinuousIndexToPhysicalPoint(c.tolist()) for c in corners])
         lo, hi = pts.min(0) - margin_mm, pts.max(0) + margin_mm
-        return (lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
+        return tuple(float(v) for v in (lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]))
 
     @classmethod
     def load(cls, directory: str | Path) -> "Segmentation":
