@@ -33,7 +33,9 @@ FIT_MODELS = {
 }
 STRETCH_COLUMN = "stretch"
 STRESS_COLUMNS = ("nominal_stress_MPa", "nominal_stress", "stress_MPa", "stress")
-_ALPHA_STARTS = (-8.0, -4.0, -2.0, 1.0, 2.0, 4.0, 8.0, 16.0, 24.0)
+_ALPHA_STARTS = {1: (-8.0, -4.0, -2.0, 1.0, 2.0, 4.0, 8.0, 16.0, 24.0),
+                 2: (-6.0, -2.0, 1.0, 2.0, 4.0, 8.0, 16.0, 24.0),
+                 3: (-4.0, -2.0, 2.0, 4.0, 8.0, 16.0)}
 
 
 @dataclass(frozen=True)
@@ -150,9 +152,13 @@ def _ogden_fit(terms, mode, lam, y):
         return A @ mu - y, mu
 
     best = None
-    for start in itertools.combinations(_ALPHA_STARTS, terms):
+    exact = 1e-24 * float(np.sum(y**2))  # the data are reproduced to round-off: stop searching
+    for start in itertools.combinations(_ALPHA_STARTS[terms], terms):
+        if best is not None and best.cost <= exact:
+            break
         try:
-            res = least_squares(lambda a: projected(a)[0], np.array(start), method="lm", xtol=1e-12, ftol=1e-12)
+            res = least_squares(lambda a: projected(a)[0], np.array(start), method="lm", xtol=1e-12, ftol=1e-12,
+                                max_nfev=200 * terms)
         except (ValueError, np.linalg.LinAlgError):
             continue
         if np.all(np.isfinite(res.fun)) and (best is None or res.cost < best.cost):
@@ -167,6 +173,9 @@ def _ogden_fit(terms, mode, lam, y):
 
     polish = least_squares(full, np.concatenate([mu, alpha]), method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
     x = polish.x if polish.cost <= 0.5 * np.sum(projected(alpha)[0] ** 2) else np.concatenate([mu, alpha])
+    if mode == "planar":
+        # (lambda, 1, 1/lambda): the terms (mu, alpha) and (mu, -alpha) give the same stress
+        x = np.concatenate([x[:terms], np.abs(x[terms:])])
     order = np.argsort(x[terms:])
     return {"mu": [float(v) for v in x[:terms][order]], "alpha": [float(v) for v in x[terms:][order]]}
 
