@@ -116,3 +116,15 @@ def test_fe_states_check_isochoric_part():
     L = cf.principal_stretches("uniaxial", [1.1, 1.4])
     np.testing.assert_allclose(stability.drucker_margin(m.model, m.parameters, 1.01 * L),
                                stability.drucker_margin(m.model, m.parameters, L), rtol=1e-12)
+
+
+def test_stable_at_deformation_gradients_is_rotation_invariant():
+    m = materials.get("muscle")
+    lam = np.array([1.1, 1.35])  # stable, unstable in uniaxial tension (limit 1.266)
+    L = cf.principal_stretches("uniaxial", lam)
+    c, s = np.cos(0.7), np.sin(0.7)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    F = np.stack([R @ np.diag(L[:, n]) for n in range(2)], axis=-1)  # (3, 3, 2)
+    np.testing.assert_array_equal(stability.stable_at("muscle", F), [True, False])
+    np.testing.assert_array_equal(stability.stable_at("needle", F), [True, True])
+    assert m.model == "mooney_rivlin_5"
