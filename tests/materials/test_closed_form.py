@@ -118,3 +118,17 @@ def test_bad_stretch_and_mode():
         cf.nominal_stress("neo_hooke", {"mu": 1.0}, "uniaxial", [1.0, 0.0])
     with pytest.raises(materials.registry.InputError, match="known: uniaxial, biaxial, planar"):
         cf.nominal_stress("neo_hooke", {"mu": 1.0}, "shear", 1.2)
+
+
+def test_felupe_umat_tends_to_the_incompressible_closed_form_as_K_grows():
+    """Nearly incompressible uniaxial tension: the stress error and J - 1 both scale like 1/K."""
+    from needletissue.materials import curves
+
+    lam = np.array([1.1, 1.3])
+    for name in ("muscle", "adipose"):
+        mu0 = materials.get(name).initial_shear_modulus
+        a = curves.compressibility(name, lam, bulk=1e4 * mu0)
+        b = curves.compressibility(name, lam, bulk=1e5 * mu0)
+        np.testing.assert_allclose((1 - a.stress_ratio) / (1 - b.stress_ratio), 10, rtol=0.05)
+        np.testing.assert_allclose((a.volume_ratio - 1) / (b.volume_ratio - 1), 10, rtol=0.05)
+        assert np.all(np.abs(1 - b.stress_ratio) < 2e-3)
