@@ -86,8 +86,11 @@ def test_fit_cli_json(tmp_path):
     csv = tmp_path / "d.csv"
     csv.write_text("stretch,nominal_stress_MPa\n" + "\n".join(f"{a!r},{b!r}" for a, b in zip(lam.tolist(),
                                                                                                 P.tolist())))
-    r = runner.invoke(app, ["materials", "fit", str(csv), "--model", "yeoh", "--mode", "uniaxial", "--json"])
+    png = tmp_path / "fit.png"
+    r = runner.invoke(app, ["materials", "fit", str(csv), "--model", "yeoh", "--mode", "uniaxial", "--json",
+                            "--plot", str(png)])
     assert r.exit_code == 0, r.output
+    assert png.read_bytes()[:4] == b"\x89PNG"
     d = json.loads(r.stdout)
     assert d["parameters"]["C20"] == pytest.approx(0.02, rel=1e-6)
     assert d["r2"] == pytest.approx(1.0, abs=1e-12) and d["stable_range"][1] > 1.4
