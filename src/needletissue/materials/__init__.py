@@ -4,7 +4,8 @@
 - closed_form: incompressible uniaxial / equibiaxial / planar nominal stress, independent of FElupe
 - stability: Drucker stability, stable stretch ranges, UnstableMaterialWarning
 - fitting: least-squares fits to CSV stretch-stress data
-- curves, plot: curves of named materials and the Fig.-3-style figure (`plot.plot_curves`)
+- curves, plot: curves of named materials; `plot.plot_curves` draws the muscle and adipose uniaxial
+  curves with the Drucker-stable range shaded (docs/img/materials_uniaxial.png)
 """
 
 from needletissue.materials.laws import mooney_rivlin_5
