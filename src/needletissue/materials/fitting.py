@@ -171,8 +171,13 @@ def _ogden_fit(terms, mode, lam, y):
     def full(x):
         return cf.nominal_stress("ogden", {"mu": x[:terms], "alpha": x[terms:]}, mode, lam) - y
 
-    polish = least_squares(full, np.concatenate([mu, alpha]), method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
-    x = polish.x if polish.cost <= 0.5 * np.sum(projected(alpha)[0] ** 2) else np.concatenate([mu, alpha])
+    x = np.concatenate([mu, alpha])
+    try:
+        polish = least_squares(full, x, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        if np.all(np.isfinite(polish.fun)) and polish.cost <= 0.5 * np.sum(projected(alpha)[0] ** 2):
+            x = polish.x
+    except (ValueError, np.linalg.LinAlgError):
+        pass  # keep the projected solution
     if mode == "planar":
         # (lambda, 1, 1/lambda): the terms (mu, alpha) and (mu, -alpha) give the same stress
         x = np.concatenate([x[:terms], np.abs(x[terms:])])
@@ -193,7 +198,8 @@ def fit(data: StressData, model: str, mode: str = "uniaxial") -> FitResult:
     if np.unique(lam).size < k:
         raise InputError(f"{where}, field stretch", f"only {np.unique(lam).size} distinct stretches for {k} "
                          f"parameters of {model}")
-    params = _linear_fit(law, mode, lam, y) if terms is None else _ogden_fit(terms, mode, lam, y)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # trial alphas may overflow
+        params = _linear_fit(law, mode, lam, y) if terms is None else _ogden_fit(terms, mode, lam, y)
     pred = cf.nominal_stress(law, params, mode, lam)
     rmse = float(np.sqrt(np.mean((pred - y) ** 2)))
     ss_tot = float(np.sum((y - y.mean()) ** 2))
