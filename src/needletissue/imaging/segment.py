@@ -61,7 +61,7 @@ class SegmentationConfig:
     split_spacing: float = 0.75       # mm; fine grid for the cortical split when voxels > thickness
     adipose_hu: tuple[float, float] = (-190.0, -30.0)
     soft_tissue_hu: tuple[float, float] = (-29.0, 150.0)
-    bone_hu: float = 200.0            # rule-based bone (no label map)
+    bone_hu: float = 130.0            # rule-based bone (no label map); see docs/imaging.md
     body_hu: float = -500.0           # body mask threshold
     split_sides: bool = True          # keep gluteus_maximus_left/right etc.
     bone_ids: tuple[int, ...] = tuple(TS_BONES)
@@ -206,7 +206,7 @@ def split_bone(bone: np.ndarray, spacing, thickness: float, fine_spacing: float)
     k = np.maximum(1, np.ceil(spacing / fine_spacing - 1e-9).astype(int))
     if np.all(k == 1):
         depth = ndi.distance_transform_edt(b, sampling=spacing) - 0.5 * spacing.min()
-        cort = b & (depth < thickness)
+        cort = b & (depth <= thickness)
         frac_cort = float(cort.sum() / max(b.sum(), 1))
         info = {"fine_factor": [1, 1, 1], "fine_cortical_fraction": frac_cort}
     else:
@@ -214,7 +214,7 @@ def split_bone(bone: np.ndarray, spacing, thickness: float, fine_spacing: float)
         fine = ndi.zoom(smooth, k, order=1, grid_mode=True, mode="grid-constant") >= 0.5
         fsp = spacing / k
         depth = ndi.distance_transform_edt(fine, sampling=fsp) - 0.5 * fsp.min()
-        fcort = fine & (depth < thickness)
+        fcort = fine & (depth <= thickness)
         shp = (b.shape[0], k[0], b.shape[1], k[1], b.shape[2], k[2])
         nb = fine.reshape(shp).sum(axis=(1, 3, 5))
         nc = fcort.reshape(shp).sum(axis=(1, 3, 5))
@@ -275,6 +275,7 @@ def segment_arrays(hu: np.ndarray, spacing_zyx, ts_labels: np.ndarray | None,
     else:
         bone = body & (hu >= cfg.bone_hu)
         bone = _drop_small(bone, int(np.ceil(1000.0 / vox)))
+        bone = ndi.binary_closing(bone) & body  # bridges gaps in thin cortex before filling
         for k in range(bone.shape[0]):
             bone[k] = ndi.binary_fill_holes(bone[k])  # marrow inside the cortex
         named = np.zeros_like(bone)
