@@ -161,7 +161,9 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     with bar if progress else nullcontext():
         for target in lams:
             while lam < target * (1 - 1e-12):
-                dl = min(step, target - lam, max_step)
+                # equal sub-steps no larger than the allowed increment (no tiny remainders)
+                rest = target - lam
+                dl = rest / np.ceil(rest / min(step, max_step) - 1e-9)
                 saved = [f.values.copy() for f in field.fields]
                 checkpoints = [b.checkpoint() if hasattr(b, "checkpoint") else None for b in bodies]
                 ext0 = loads.apply(model, lam + dl)
