@@ -29,7 +29,7 @@ class TractionConfig:
     elements: int = 4  # elements per side (structured tetrahedra)
     order: int = 2
     formulation: str = "mixed"
-    bulk_ratio: float = 1000.0  # K / mu0 of the FE model (the theory is exactly incompressible)
+    bulk_ratio: float = 1e4  # K / mu0 of the FE model (the theory is exactly incompressible)
     ends: str = "free"
 
     def __post_init__(self):
