@@ -124,7 +124,7 @@ def run(config: TractionConfig, progress: bool = False) -> TractionResult:
     top = (0.0, 0.0, c.max_displacement) if c.ends == "clamped" else (None, None, c.max_displacement)
     bcs.append(PrescribedDisplacement("zmax", top))
     factors = np.linspace(0, 1, int(c.points))
-    results = solve(model, bcs, factors[1:], progress=progress, initial_step=factors[1] / 2)
+    results = solve(model, bcs, factors[1:], progress=progress)
     d = factors * c.max_displacement
     fe = np.concatenate([[0.0], [r.reaction_forces["zmax"][2] / (w * w) for r in results]])
     stretch = 1 + d / h
