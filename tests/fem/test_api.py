@@ -1,11 +1,13 @@
 """The published FE-core API on a small mesh: BCs by surface name, results, VTU, errors."""
 
+import json
+
 import meshio
 import numpy as np
 import pytest
 
 from needletissue.errors import InputError
-from needletissue.fem import FEModel, Fixed, PrescribedDisplacement, SurfaceForce, TaggedMesh, solve
+from needletissue.fem import FEModel, Fixed, PrescribedDisplacement, SurfaceForce, TaggedMesh, solve, write_results
 
 
 @pytest.fixture(scope="module")
@@ -31,6 +33,10 @@ def test_force_equilibrium_and_outputs(two_layers, tmp_path):
     m = meshio.read(path)
     assert set(m.cell_data) >= {"von_mises_MPa", "principal_stretches", "region"}
     np.testing.assert_allclose(m.point_data["displacement"], res[-1].displacement)
+    payload = write_results(tmp_path / "run", res, {"load_N": 1.0})
+    saved = json.loads((tmp_path / "run" / "results.json").read_text())
+    assert saved == json.loads(json.dumps(payload)) and payload["vtu"] == ["fe_0.vtu", "fe_1.vtu"]
+    assert (tmp_path / "run" / "versions.json").exists() and (tmp_path / "run" / "config.toml").exists()
 
 
 def test_prescribed_displacement_is_reproduced(two_layers):
