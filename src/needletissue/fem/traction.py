@@ -81,23 +81,17 @@ PAPER_RMSE = {"muscle": 0.0131, "adipose": 0.0105}  # MPa, paper Sec. 3.2
 def theory_nominal_stress(material: str, stretch) -> np.ndarray:
     """Incompressible uniaxial nominal stress (MPa) of a tissue's isochoric strain energy.
 
-    Uses needletissue.materials.closed_form when present, else FElupe's ViewMaterialIncompressible
-    (lambda2 = lambda3 = lambda^-1/2, lateral stress zero) on the same energy.
+    Uses the closed forms of needletissue.materials (Material.nominal_stress, written independently
+    of FElupe) when present, else FElupe's ViewMaterialIncompressible on the same energy.
     """
     stretch = np.asarray(stretch, float)
-    try:  # the closed forms of branch `mat`, when merged
-        from needletissue.materials import closed_form  # type: ignore
-
-        fun = getattr(closed_form, "uniaxial_nominal_stress", None)
-        if fun is not None:
-            return np.asarray(fun(material, stretch), float)
-    except ImportError:
-        pass
-    import felupe as fem
-
     mat = materials.get(material)
     if mat.model == "elastic":
         raise InputError("material", f"{material} is not a hyperelastic tissue")
+    if hasattr(mat, "nominal_stress"):
+        return np.asarray(mat.nominal_stress("uniaxial", stretch), float).reshape(stretch.shape)
+    import felupe as fem
+
     out = np.zeros_like(stretch)
     nz = ~np.isclose(stretch, 1.0)
     if nz.any():
