@@ -178,7 +178,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 if predictor and last_du is not None:
                     for f, d in zip(field.fields, last_du):
                         f.values = f.values + (dl / last_dl) * d
-                checkpoints = [b.checkpoint() if hasattr(b, "checkpoint") else None for b in bodies]
+                stateful = [*bodies, *items]  # e.g. a frictional contact item's history
+                checkpoints = [b.checkpoint() if hasattr(b, "checkpoint") else None for b in stateful]
                 ext0 = loads.apply(model, lam + dl)
                 ok, res, why = False, None, ""
                 ts = time.perf_counter()
@@ -214,7 +215,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 # failed: restore the last converged state and halve the increment
                 for f, v in zip(field.fields, saved):
                     f.values = v
-                for b, c in zip(bodies, checkpoints):
+                for b, c in zip(stateful, checkpoints):
                     if c is not None:
                         b.restore(c)
                 ncut += 1
