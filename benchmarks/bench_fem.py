@@ -168,13 +168,21 @@ def scale(sizes, solvers, out: Path, mesh_dir: Path):
             row = json.loads(p.stdout.strip().splitlines()[-1])
             rows.append(row)
             print(json.dumps(row), flush=True)
+    summarize(rows, solvers, out)
+
+
+def summarize(rows, solvers, out: Path):
+    """Fit growth exponents per solver and write the JSON (also used to combine separate runs)."""
     summary = {}
+    for r in rows:
+        if "error" not in r:
+            r["cpu_per_iteration_s"] = r["newton_cpu_s"] / r["newton_iterations"]
     for solver in solvers:
         ok = [r for r in rows if r["solver"] == solver and "error" not in r]
         if len(ok) < 2:
             continue
         s = {}
-        for key in ("linear_solve_per_iteration_s", "assembly_and_update_per_iteration_s", "newton_cpu_s",
+        for key in ("linear_solve_per_iteration_s", "assembly_and_update_per_iteration_s", "cpu_per_iteration_s",
                     "peak_rss_GB"):
             a, b = fit(ok, key)
             s[key] = {"exponent": b, "extrapolated_to_paper": a * PAPER_TETS**b}
@@ -234,3 +242,6 @@ if __name__ == "__main__":
         ap.add_argument("--mesh-dir", type=Path, default=Path("/tmp/needletissue_bench_meshes"))
         a = ap.parse_args()
         scale(a.sizes, a.solvers, a.out, a.mesh_dir)
+    elif sys.argv[1] == "combine":  # combine OUT IN1 IN2 ...: one table and fit from separate runs
+        rows = [r for f in sys.argv[3:] for r in json.loads(Path(f).read_text())["cases"]]
+        summarize(rows, SOLVERS, Path(sys.argv[2]))
