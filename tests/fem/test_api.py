@@ -59,3 +59,12 @@ def test_bad_input_names_the_field(two_layers):
         solve(model, [Fixed("zmin")], [1.0, 0.5], progress=False)
     with pytest.raises(InputError, match="solver"):
         solve(model, [Fixed("zmin")], solver="mumps", progress=False)
+
+
+def test_progress_bar_goes_to_stderr(two_layers, capsys):
+    """The Rich bar reports on stderr (stdout stays clean for --json) with Newton residuals."""
+    model = FEModel(two_layers, {"muscle": "muscle", "adipose": "adipose"})
+    solve(model, [Fixed("zmin"), SurfaceForce("zmax", (0.0, 0.0, 0.1))], [1.0], progress=True)
+    out = capsys.readouterr()
+    assert out.out == ""
+    assert "Newton" in out.err and "|r|" in out.err
