@@ -33,3 +33,16 @@ def test_rigid_body_modes_are_null_space():
     K = model.bodies["needle"].assemble.matrix()
     B = linsolve.rigid_body_modes(mesh.points)
     assert np.abs(K @ B).max() < 1e-9 * abs(K).max()
+
+
+@pytest.mark.parametrize("name", ["scipy", "pardiso", "amg"])
+def test_bad_systems_raise_linalgerror(name):
+    """NaN residuals and singular matrices become LinAlgError, which solve() turns into a cut-back."""
+    import scipy.sparse as sp
+
+    s = linsolve.make(name, np.zeros((2, 3)), np.arange(6))
+    A = sp.identity(6, format="csr")
+    with pytest.raises(np.linalg.LinAlgError):
+        s(A, np.full(6, np.nan))
+    with pytest.raises(np.linalg.LinAlgError):
+        s(sp.csr_matrix((6, 6)), np.ones(6))

@@ -48,9 +48,17 @@ class TimedSolver:
         self.fun = fun
 
     def __call__(self, A, b):
+        if not np.all(np.isfinite(b)):  # e.g. a contact item's NaN residual after interpenetration
+            raise np.linalg.LinAlgError(f"{self.name}: non-finite residual")
         t = time.perf_counter()
-        x = self._fun(A, b)
-        self.seconds += time.perf_counter() - t
+        try:
+            x = self._fun(A, b)
+        except np.linalg.LinAlgError:
+            raise
+        except Exception as exc:  # backend errors (PyPardisoError, SuperLU 'singular matrix', ...)
+            raise np.linalg.LinAlgError(f"{self.name}: {type(exc).__name__}: {exc}") from exc
+        finally:
+            self.seconds += time.perf_counter() - t
         self.calls += 1
         if not np.all(np.isfinite(x)):
             raise np.linalg.LinAlgError(f"{self.name}: non-finite solution (singular or indefinite tangent)")
