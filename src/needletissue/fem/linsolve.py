@@ -96,7 +96,7 @@ def make(name: str, points: np.ndarray | None = None, dof1: np.ndarray | None = 
 
     elif name == "amg":
         import pyamg
-        from scipy.sparse.linalg import cg
+        from scipy.sparse.linalg import cg, gmres
 
         if points is None or dof1 is None:
             raise InputError("solver", "amg needs the mesh points and free dofs for rigid-body modes")
@@ -112,7 +112,11 @@ def make(name: str, points: np.ndarray | None = None, dof1: np.ndarray | None = 
             def count(_):
                 it[0] += 1
 
-            x, info = cg(A, b, rtol=rtol, atol=0.0, maxiter=maxiter, M=ml.aspreconditioner(), callback=count)
+            if abs(A - A.T).max() <= 1e-12 * abs(A).max():
+                x, info = cg(A, b, rtol=rtol, atol=0.0, maxiter=maxiter, M=ml.aspreconditioner(), callback=count)
+            else:  # e.g. frictional contact: non-symmetric tangent, CG does not apply
+                x, info = gmres(A, b, rtol=rtol, atol=0.0, restart=50, maxiter=maxiter // 50 + 1,
+                                M=ml.aspreconditioner(), callback=count, callback_type="pr_norm")
             if info != 0:
                 raise np.linalg.LinAlgError(f"amg-cg did not converge in {maxiter} iterations (info={info})")
             fun.cg_iterations += it[0]
