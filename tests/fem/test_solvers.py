@@ -1,0 +1,64 @@
+"""The three linear solvers give the same Newton solution; "auto" picks by size."""
+
+import numpy as np
+import pytest
+
+from needletissue.fem import FEModel, Fixed, SurfaceForce, TaggedMesh, linsolve, solve
+
+
+def test_solvers_agree():
+    mesh = TaggedMesh.box((30, 4, 4), (16, 3, 3), origin=(0, -2, -2), region="needle")
+    out = {}
+    for name in ("scipy", "pardiso", "amg"):
+        model = FEModel(mesh, {"needle": "needle"}, order=2)
+        r = solve(model, [Fixed("xmin"), SurfaceForce("xmax", (0, 0, 50.0))], [1.0], solver=name, progress=False)
+        out[name] = r[-1]
+        assert r[-1].linear_solver == name
+    ref = out["pardiso"].displacement
+    assert np.abs(ref).max() > 0.1
+    for name in ("scipy", "amg"):
+        np.testing.assert_allclose(out[name].displacement, ref, atol=1e-6 * np.abs(ref).max())
+
+
+def test_auto_choice():
+    assert linsolve.choose("auto", 1_000) == ("pardiso" if linsolve.has_pardiso() else "scipy")
+    assert linsolve.choose("auto", 10 * linsolve.AUTO_DIRECT_MAX_DOFS) == "amg"
+    assert linsolve.choose("scipy", 10**7) == "scipy"
+
+
+def test_rigid_body_modes_are_null_space():
+    """K B = 0 for the unconstrained stiffness: the near-null space AMG needs."""
+    mesh = TaggedMesh.box((3, 2, 1), (3, 3, 2), region="needle")
+    model = FEModel(mesh, {"needle": "needle"})
+    K = model.bodies["needle"].assemble.matrix()
+    B = linsolve.rigid_body_modes(mesh.points)
+    assert np.abs(K @ B).max() < 1e-9 * abs(K).max()
+
+
+@pytest.mark.parametrize("name", ["scipy", "pardiso", "amg"])
+def test_bad_systems_raise_linalgerror(name):
+    """NaN residuals and singular matrices become LinAlgError, which solve() turns into a cut-back."""
+    import scipy.sparse as sp
+
+    s = linsolve.make(name, np.zeros((2, 3)), np.arange(6))
+    A = sp.identity(6, format="csr")
+    with pytest.raises(np.linalg.LinAlgError):
+        s(A, np.full(6, np.nan))
+    with pytest.raises(np.linalg.LinAlgError):
+        s(sp.csr_matrix((6, 6)), np.ones(6))
+
+
+def test_amg_handles_nonsymmetric_tangent():
+    """A frictional contact makes the tangent non-symmetric: AMG switches from CG to GMRES."""
+    import scipy.sparse as sp
+
+    mesh = TaggedMesh.box((10, 4, 4), (8, 3, 3), region="needle")
+    model = FEModel(mesh, {"needle": "needle"})
+    K = model.bodies["needle"].assemble.matrix().tocsr()
+    free = np.arange(9, K.shape[0])  # drop the first 3 nodes: no rigid-body modes left
+    A = K[free][:, free]
+    A = (A + 1e-3 * abs(A).max() * sp.random(*A.shape, density=1e-3, random_state=0, format="csr")).tocsr()
+    assert abs(A - A.T).max() > 0  # non-symmetric
+    b = np.random.default_rng(0).normal(size=A.shape[0])
+    x = linsolve.make("amg", mesh.points, free)(A, b)
+    assert np.linalg.norm(A @ x - b) < 1e-6 * np.linalg.norm(b)
