@@ -7,6 +7,7 @@ last inside it; the folder also holds the completion marker ``.needletissue-repr
 
 from __future__ import annotations
 
+import os
 import shutil
 import tempfile
 import time
@@ -124,6 +125,9 @@ def run_reproduce(cfg: ReproduceConfig, out: str | Path, stages: list[Stage], *,
     _check_out(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the result folder should not be
     t0 = time.perf_counter()
     outcomes: list[StageOutcome] = []
     try:
