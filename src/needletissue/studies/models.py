@@ -114,21 +114,19 @@ def _load_builtin() -> None:
 
 def run_chunk(model_name: str, cases: pd.DataFrame, fixed: dict) -> pd.DataFrame:
     """Dask task: run a chunk of cases. Failures become rows with status 'failed' and the error."""
-    model = get_model(model_name)
-    try:
-        out = model.chunk_function(cases, fixed)
-    except Exception:
-        # Whole-chunk failure: isolate the bad cases one by one so the good ones still count.
-        out = pd.concat([_one_by_one(model, cases.iloc[[i]], fixed) for i in range(len(cases))],
-                        ignore_index=True)
-    return out
+    return _bisect(get_model(model_name), cases, fixed)
 
 
-def _one_by_one(model: CaseModel, case: pd.DataFrame, fixed: dict) -> pd.DataFrame:
+def _bisect(model: CaseModel, cases: pd.DataFrame, fixed: dict) -> pd.DataFrame:
+    """Run the chunk; if it raises, halve it until the failing cases stand alone (O(f log n) calls)."""
     try:
-        return model.chunk_function(case, fixed)
+        return model.chunk_function(cases, fixed)
     except Exception as exc:
-        return failed_rows(case, model.outputs, exc)
+        if len(cases) == 1:
+            return failed_rows(cases, model.outputs, exc)
+    mid = len(cases) // 2
+    return pd.concat([_bisect(model, cases.iloc[:mid], fixed), _bisect(model, cases.iloc[mid:], fixed)],
+                     ignore_index=True)
 
 
 def failed_rows(cases: pd.DataFrame, outputs, exc: BaseException) -> pd.DataFrame:
