@@ -96,4 +96,5 @@ class _RitzCaseModel(CaseModel):
             raise InputError("parameters.force_N", "the force must be varied or fixed (fixed.force_N = 300.0)")
 
 
-register(_RitzCaseModel("ritz", PARAMETERS, OUTPUTS, 20_000, run_ritz_chunk, SETTINGS))
+register(_RitzCaseModel("ritz", PARAMETERS, OUTPUTS, 20_000, run_ritz_chunk, SETTINGS,
+                        primary_outputs=("tip_deflection_mm", "max_deflection_mm")))

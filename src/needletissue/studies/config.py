@@ -64,17 +64,18 @@ class ParameterSpec(_Strict):
             raise ValueError(f"low ({self.low}) must be < high ({self.high})")
         return self
 
-    def support(self) -> tuple[float, float]:
-        """Smallest and largest value the distribution or grid can produce."""
+    def support(self) -> tuple[float, float, bool]:
+        """Smallest and largest value the distribution or grid can produce; True when the lower end is
+        open (lognormal: values > 0 but never 0)."""
         if self.values is not None:
-            return min(self.values), max(self.values)
+            return min(self.values), max(self.values), False
         match self.distribution:
             case "uniform" | "truncnorm":
-                return self.low, self.high
+                return self.low, self.high, False
             case "normal":
-                return -math.inf, math.inf
+                return -math.inf, math.inf, False
             case "lognormal":
-                return 0.0, math.inf
+                return 0.0, math.inf, True
         raise AssertionError(self.distribution)
 
 

@@ -34,9 +34,10 @@ class ParamInfo:
                  if v is not None]
         return " and ".join(parts) or "any finite value"
 
-    def admits(self, lo: float, hi: float) -> bool:
-        """True when every value in [lo, hi] is physical."""
-        return ((self.gt is None or lo > self.gt) and (self.ge is None or lo >= self.ge)
+    def admits(self, lo: float, hi: float, lo_open: bool = False) -> bool:
+        """True when every value in [lo, hi] ((lo, hi] when lo_open) is physical."""
+        return ((self.gt is None or lo > self.gt or (lo_open and lo >= self.gt))
+                and (self.ge is None or lo >= self.ge)
                 and (self.lt is None or hi < self.lt) and (self.le is None or hi <= self.le))
 
 
@@ -48,13 +49,14 @@ class CaseModel:
     default_chunk_size: int
     chunk_function: Callable[[pd.DataFrame, dict], pd.DataFrame]
     settings: dict[str, str] = field(default_factory=dict)  # non-numeric fixed options -> description
+    primary_outputs: tuple[str, ...] = ()  # plotted when study.outputs is not given
 
     def check_config(self, cfg) -> None:
         """Names, fixed values and distributions: every value a case can receive must be physical."""
         for name, spec in cfg.parameters.items():
             info = self._info(f"parameters.{name}", name)
-            lo, hi = spec.support()
-            if not info.admits(lo, hi):
+            lo, hi, lo_open = spec.support()
+            if not info.admits(lo, hi, lo_open):
                 hint = ""
                 if spec.distribution in ("normal", "lognormal") or math.isinf(lo) or math.isinf(hi):
                     hint = "; use truncnorm with low/high inside the range, or uniform"

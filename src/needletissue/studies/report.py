@@ -15,7 +15,7 @@ from needletissue.studies.models import get_model
 def write_outputs(cfg, res, params: list[str]) -> None:
     out = res.out_dir
     model = get_model(cfg.study.model)
-    outputs = list(cfg.study.outputs or model.outputs)
+    outputs = list(model.outputs)
     df = res.results.drop(columns=["run_id"], errors="ignore")
     buf = io.BytesIO()
     df.to_parquet(buf, index=False)
@@ -29,7 +29,8 @@ def write_outputs(cfg, res, params: list[str]) -> None:
     if cfg.study.method == "sobol":
         summary["sensitivity_sobol"] = analysis.sobol(df, params, outputs, cfg.study.seed)
     res.summary = summary
-    res.figures = figures(cfg, df, params, outputs, summary, out / "figures")
+    plotted = list(cfg.study.outputs or model.primary_outputs or outputs)
+    res.figures = figures(cfg, df, params, plotted, summary, out / "figures")
 
     results = {
         "study": cfg.study.name, "model": cfg.study.model, "method": cfg.study.method,
