@@ -86,7 +86,7 @@ class _RitzCaseModel(CaseModel):
         if "tissue_thickness_mm" in given and per_layer:
             raise InputError("parameters.tissue_thickness_mm",
                              f"give either the total thickness or per-layer thicknesses ({', '.join(per_layer)})")
-        from needletissue.ritz.solve import parse_order
+        from needletissue.ritz import parse_order
 
         if "order" in cfg.fixed:
             parse_order(cfg.fixed["order"])
