@@ -51,7 +51,7 @@ DEFAULT_LAYERS = (Layer("muscle", 22.0, 0.048), Layer("adipose", 10.0, 0.023))
 # Needle diameter and free length: the paper leaves them open (docs/ritz.md, "Paper consistency").
 # A 5 mm Schanz pin with this free length gives the paper's 17.63 mm tip deflection at 300 N.
 DEFAULT_DIAMETER_MM = 5.0
-DEFAULT_FREE_LENGTH_MM = 84.0
+DEFAULT_FREE_LENGTH_MM = 84.18
 
 
 @dataclass(frozen=True)

@@ -315,7 +315,7 @@ def solve_batch(force, *, diameter_mm=None, free_length_mm=None, youngs_modulus_
     F, d, l, E = (np.ascontiguousarray(np.broadcast_to(a, (n,)), dtype=float) for a in (F, d, l, E))
     T = np.ascontiguousarray(np.broadcast_to(t, (n, nl)), dtype=float)
     K = np.ascontiguousarray(np.broadcast_to(k, (n, nl)), dtype=float)
-    too_thick = T.sum(axis=1) > l
+    too_thick = T.sum(axis=1) > l * (1 + 1e-12)  # round-off of thickness fractions of l
     if too_thick.any():
         m = np.flatnonzero(too_thick)[0]
         raise InputError("thickness_mm", f"total layer thickness must be <= free_length_mm, got "
