@@ -10,7 +10,7 @@ import warnings
 from dataclasses import dataclass
 
 from needletissue.report.config import ReproduceConfig
-from needletissue.report.pipeline import Stage, StageContext, StageResult
+from needletissue.report.pipeline import Comparison, Stage, StageContext, StageResult
 
 
 def _on(section):
@@ -46,8 +46,59 @@ def materials_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     return StageResult(data, figures=[fig], notes=notes)
 
 
+# --- Rayleigh-Ritz needle model at 100/200/300 N (paper Fig. 5) ------------------------------------
+
+
+@dataclass
+class RitzCurves:
+    model: dict  # every parameter used (RitzModel.to_dict)
+    order: int | str
+    results: list[dict]  # the `ritz --json` contract per force
+    curves: dict  # force -> {"z_mm": [...], "v_mm": [...]}
+
+
+def ritz_model(cfg: ReproduceConfig):
+    from needletissue.ritz import Layer, RitzModel
+
+    r = cfg.ritz
+    return RitzModel(diameter_mm=r.diameter_mm, free_length_mm=r.free_length_mm,
+                     youngs_modulus_MPa=r.youngs_modulus_MPa, cos_term=r.use_cos,
+                     layers=tuple(Layer(la.name, la.thickness_mm, la.k_N_per_mm2) for la in r.layers))
+
+
+def ritz_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
+    from needletissue.ritz import plot_deflection, solve_forces
+
+    model = ritz_model(cfg)
+    res = solve_forces(cfg.ritz.forces_N, model, order=cfg.ritz.order)
+    d = ctx.stage_dir("ritz")
+    fig = plot_deflection(res, d / "ritz_deflection_fig5.png", model=model)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    curves = {}
+    for r in res:
+        z, v = r.curve(101)
+        curves[f"{r.force_N:g}"] = {"z_mm": z, "v_mm": v}
+    data = RitzCurves(model.to_dict(), cfg.ritz.order, [r.to_json() for r in res], curves)
+    by_force = {r.force_N: r for r in res}
+    comps = [Comparison(f"Ritz tip deflection at {r.force_N:g} N", r.tip_deflection_mm, "mm",
+                        "ritz_tip_deflection_300N_mm" if r.force_N == 300.0 else None) for r in res]
+    if 100.0 in by_force and 300.0 in by_force:
+        inc = 100.0 * (by_force[300.0].tip_deflection_mm / by_force[100.0].tip_deflection_mm - 1.0)
+        comps.append(Comparison("Ritz tip deflection increase, 300 N over 100 N", inc, "%",
+                                "ritz_increase_300_vs_100N_percent",
+                                "a stiffening model gives at most +200 % (3x the force); see docs/ritz.md"))
+    notes = [f"needle d = {model.diameter_mm:g} mm, free length l = {model.free_length_mm:g} mm, "
+             f"E = {model.youngs_modulus_MPa:g} MPa, order {cfg.ritz.order}, "
+             f"v/cos(theta) {'on' if model.cos_term else 'off'}"]
+    return StageResult(data, figures=[d / "ritz_deflection_fig5.png"],
+                       comparisons=comps, notes=notes)
+
+
 def stage_list() -> list[Stage]:
     """The stages `reproduce` runs, in order. A stage joins this list when its engine is merged."""
     return [
         Stage("materials", "Material curves (paper Fig. 3 style)", materials_stage, _on("materials")),
+        Stage("ritz", "Rayleigh-Ritz needle model, 100/200/300 N (paper Fig. 5)", ritz_stage, _on("ritz")),
     ]
