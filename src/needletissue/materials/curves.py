@@ -60,3 +60,29 @@ def curve(name, mode: str = "uniaxial", stretch_max: float = 1.5, points: int = 
     rng = stability.stable_range(mat.model, mat.parameters, mode)
     msg = stability.warn_if_unstable(mat.name, mat.model, mat.parameters, mode, stretch, rng)
     return Curve(mat.name, mat.model, dict(mat.parameters), mode, stretch, stress, rng, msg)
+
+
+@dataclass(frozen=True)
+class Compressibility:
+    """FElupe uniaxial tension of the nearly incompressible umat (lateral faces traction-free)."""
+
+    material: str
+    bulk_MPa: float
+    stretch: np.ndarray
+    volume_ratio: np.ndarray  # J
+    stress_ratio: np.ndarray  # P(umat with K) / P(incompressible closed form)
+
+
+def compressibility(name, stretch, bulk: float | None = None) -> Compressibility:
+    """How far the FE material (isochoric law & Volumetric(K)) is from incompressible in uniaxial tension."""
+    import felupe as fem
+
+    mat = hyperelastic(name)
+    K = mat.bulk if bulk is None else check_number("bulk", bulk, gt=0)
+    lam = np.atleast_1d(np.asarray(stretch, dtype=float))
+    if np.any(lam == 1.0):
+        raise InputError("stretch", "exclude stretch 1 (zero stress, ratio undefined)")
+    view = fem.ViewMaterial(mat.umat(bulk=K), ux=lam, ps=None, bx=None)
+    (l1, l2, l3), P, _ = view.uniaxial()
+    ratio = P / cf.nominal_stress(mat.model, mat.parameters, "uniaxial", lam)
+    return Compressibility(mat.name, K, lam, l1 * l2 * l3, ratio)

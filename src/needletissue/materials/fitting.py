@@ -33,7 +33,9 @@ FIT_MODELS = {
 }
 STRETCH_COLUMN = "stretch"
 STRESS_COLUMNS = ("nominal_stress_MPa", "nominal_stress", "stress_MPa", "stress")
-_ALPHA_STARTS = (-8.0, -4.0, -2.0, 1.0, 2.0, 4.0, 8.0, 16.0, 24.0)
+_ALPHA_STARTS = {1: (-8.0, -4.0, -2.0, 1.0, 2.0, 4.0, 8.0, 16.0, 24.0),
+                 2: (-6.0, -2.0, 1.0, 2.0, 4.0, 8.0, 16.0, 24.0),
+                 3: (-4.0, -2.0, 2.0, 4.0, 8.0, 16.0)}
 
 
 @dataclass(frozen=True)
@@ -150,9 +152,13 @@ def _ogden_fit(terms, mode, lam, y):
         return A @ mu - y, mu
 
     best = None
-    for start in itertools.combinations(_ALPHA_STARTS, terms):
+    exact = 1e-24 * float(np.sum(y**2))  # the data are reproduced to round-off: stop searching
+    for start in itertools.combinations(_ALPHA_STARTS[terms], terms):
+        if best is not None and best.cost <= exact:
+            break
         try:
-            res = least_squares(lambda a: projected(a)[0], np.array(start), method="lm", xtol=1e-12, ftol=1e-12)
+            res = least_squares(lambda a: projected(a)[0], np.array(start), method="lm", xtol=1e-12, ftol=1e-12,
+                                max_nfev=200 * terms)
         except (ValueError, np.linalg.LinAlgError):
             continue
         if np.all(np.isfinite(res.fun)) and (best is None or res.cost < best.cost):
@@ -165,8 +171,16 @@ def _ogden_fit(terms, mode, lam, y):
     def full(x):
         return cf.nominal_stress("ogden", {"mu": x[:terms], "alpha": x[terms:]}, mode, lam) - y
 
-    polish = least_squares(full, np.concatenate([mu, alpha]), method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
-    x = polish.x if polish.cost <= 0.5 * np.sum(projected(alpha)[0] ** 2) else np.concatenate([mu, alpha])
+    x = np.concatenate([mu, alpha])
+    try:
+        polish = least_squares(full, x, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        if np.all(np.isfinite(polish.fun)) and polish.cost <= 0.5 * np.sum(projected(alpha)[0] ** 2):
+            x = polish.x
+    except (ValueError, np.linalg.LinAlgError):
+        pass  # keep the projected solution
+    if mode == "planar":
+        # (lambda, 1, 1/lambda): the terms (mu, alpha) and (mu, -alpha) give the same stress
+        x = np.concatenate([x[:terms], np.abs(x[terms:])])
     order = np.argsort(x[terms:])
     return {"mu": [float(v) for v in x[:terms][order]], "alpha": [float(v) for v in x[terms:][order]]}
 
@@ -184,7 +198,8 @@ def fit(data: StressData, model: str, mode: str = "uniaxial") -> FitResult:
     if np.unique(lam).size < k:
         raise InputError(f"{where}, field stretch", f"only {np.unique(lam).size} distinct stretches for {k} "
                          f"parameters of {model}")
-    params = _linear_fit(law, mode, lam, y) if terms is None else _ogden_fit(terms, mode, lam, y)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # trial alphas may overflow
+        params = _linear_fit(law, mode, lam, y) if terms is None else _ogden_fit(terms, mode, lam, y)
     pred = cf.nominal_stress(law, params, mode, lam)
     rmse = float(np.sqrt(np.mean((pred - y) ** 2)))
     ss_tot = float(np.sum((y - y.mean()) ** 2))

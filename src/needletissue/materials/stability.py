@@ -111,3 +111,18 @@ def warn_if_unstable(name: str, model: str, parameters: dict, mode: str, stretch
            f"(from {s[outside].min():.4g} to {s[outside].max():.4g}) lie outside it")
     warnings.warn(msg, UnstableMaterialWarning, stacklevel=2)
     return msg
+
+
+def stable_at(material, F) -> np.ndarray:
+    """Drucker verdict of a named tissue material at deformation gradients F (3, 3, ...), e.g. FE
+    quadrature points: True where the isochoric part of F is stable. Elastic materials: all True."""
+    from needletissue.materials import registry
+
+    mat = registry.get(material)
+    F = np.asarray(F, dtype=float)
+    if mat.model not in cf.PARAMETERS:
+        return np.ones(F.shape[2:], dtype=bool)
+    Fm = np.moveaxis(F.reshape(3, 3, -1), -1, 0)
+    C = np.einsum("nki,nkj->nij", Fm, Fm)
+    lam = np.sqrt(np.linalg.eigvalsh(C)).T  # (3, n)
+    return (drucker_margin(mat.model, mat.parameters, lam) > 0).reshape(F.shape[2:])
