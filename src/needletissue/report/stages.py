@@ -46,6 +46,32 @@ def materials_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     return StageResult(data, figures=[fig], notes=notes)
 
 
+# --- traction validation: FE tissue block vs closed form (paper Sec. 3.2, Eq. 16) -------------------
+
+
+@dataclass
+class TractionValidation:
+    results: list[dict]  # fem.traction.TractionResult.to_dict per tissue
+
+
+def traction_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
+    from needletissue.fem import traction
+
+    d = ctx.stage_dir("traction")
+    results, figs, comps = [], [], []
+    for m in cfg.traction.materials:
+        r = traction.run(traction.TractionConfig(material=m))
+        fig = d / f"traction_{m}.png"
+        traction.plot(r, fig)
+        results.append(r.to_dict())
+        figs.append(fig)
+        comps.append(Comparison(f"Traction validation RMSE, {m} (Eq. 16)", r.rmse_MPa, "MPa",
+                                f"traction_rmse_{m}_MPa", "criterion < 0.05 MPa"))
+    notes = [f"{r['material']}: RMSE {r['rmse_MPa']:.3g} MPa over {len(r['displacement_mm'])} points, "
+             f"max relative error {r['max_relative_error']:.2g}" for r in results]
+    return StageResult(TractionValidation(results), figures=figs, comparisons=comps, notes=notes)
+
+
 # --- Rayleigh-Ritz needle model at 100/200/300 N (paper Fig. 5) ------------------------------------
 
 
@@ -99,6 +125,8 @@ def ritz_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
 def stage_list() -> list[Stage]:
     """The stages `reproduce` runs, in order. A stage joins this list when its engine is merged."""
     return [
-        Stage("materials", "Material curves (paper Fig. 3 style)", materials_stage, _on("materials")),
-        Stage("ritz", "Rayleigh-Ritz needle model, 100/200/300 N (paper Fig. 5)", ritz_stage, _on("ritz")),
+        Stage("materials", "Material curves (Fig. 3)", materials_stage, _on("materials")),
+        Stage("traction", "Traction validation (Sec. 3.2)", traction_stage,
+              _on("traction")),
+        Stage("ritz", "Ritz model, 100-300 N (Fig. 5)", ritz_stage, _on("ritz")),
     ]
