@@ -9,6 +9,7 @@ processes can import them.
 from __future__ import annotations
 
 import math
+import time
 import traceback
 from dataclasses import dataclass, field
 from typing import Callable
@@ -115,8 +116,14 @@ def _load_builtin() -> None:
 
 
 def run_chunk(model_name: str, cases: pd.DataFrame, fixed: dict) -> pd.DataFrame:
-    """Dask task: run a chunk of cases. Failures become rows with status 'failed' and the error."""
-    return _bisect(get_model(model_name), cases, fixed)
+    """Dask task: run a chunk of cases. Failures become rows with status 'failed' and the error.
+
+    Adds ``chunk_wall_time_s`` (compute time of the whole chunk, the same on each of its rows), from
+    which the scheduling overhead of a study is measured."""
+    t0 = time.perf_counter()
+    out = _bisect(get_model(model_name), cases, fixed)
+    out["chunk_wall_time_s"] = time.perf_counter() - t0
+    return out
 
 
 def _bisect(model: CaseModel, cases: pd.DataFrame, fixed: dict) -> pd.DataFrame:

@@ -16,7 +16,7 @@ def write_outputs(cfg, res, params: list[str]) -> None:
     out = res.out_dir
     model = get_model(cfg.study.model)
     outputs = list(model.outputs)
-    df = res.results.drop(columns=["run_id"], errors="ignore")
+    df = res.results.drop(columns=["run_id", "chunk_wall_time_s"], errors="ignore")
     buf = io.BytesIO()
     df.to_parquet(buf, index=False)
     write_atomic(out / "results.parquet", buf.getvalue())
@@ -35,7 +35,7 @@ def write_outputs(cfg, res, params: list[str]) -> None:
     results = {
         "study": cfg.study.name, "model": cfg.study.model, "method": cfg.study.method,
         "n_cases": res.n_cases, "n_ok": res.n_ok, "n_failed": res.n_failed,
-        "computed_this_run": res.computed_this_run, "resumed": res.resumed,
+        "computed_this_run": res.computed_this_run, "resumed": res.resumed, "timing": res.timing,
         "failures": res.failures[:1000], "summary": summary,
         "files": {"results": ["results.parquet", "results.csv"], "failures": "failures.csv",
                   "figures": [str(p.relative_to(out)) for p in res.figures]},

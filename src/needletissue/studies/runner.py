@@ -48,6 +48,7 @@ class StudyResult:
     resumed: int
     wall_time_s: float
     results: pd.DataFrame = field(repr=False)
+    timing: dict = field(default_factory=dict)
     failures: list[dict] = field(default_factory=list)
     summary: dict = field(default_factory=dict)
     figures: list[Path] = field(default_factory=list)
@@ -184,16 +185,21 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
     def task_input(s, e):
         return cases.iloc[s:e][["case_id", *model_params]].reset_index(drop=True)
 
+    chunk_compute = []
+    n_workers = 1
+    t_compute = time.perf_counter()
     with _Progress(n, resumed, failed_before, progress, cfg.study.name) as bar:
         if pending and serial:
             for i, s, e in pending:
                 df = run_chunk(model.name, task_input(s, e), fixed)
                 _persist(out_dir, i, df, run_id)
+                chunk_compute.append(float(df["chunk_wall_time_s"].iloc[0]))
                 bar.advance(len(df), int((df["status"] != "ok").sum()))
         elif pending:
             from dask.distributed import as_completed
 
             client, cluster = _client(scheduler, workers)
+            n_workers = max(1, len(client.scheduler_info().get("workers", {})) or workers)
             try:
                 futures = {}
                 for i, s, e in pending:
@@ -203,6 +209,7 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
                 for fut in as_completed(futures):
                     df = fut.result()
                     _persist(out_dir, futures[fut], df, run_id)
+                    chunk_compute.append(float(df["chunk_wall_time_s"].iloc[0]))
                     bar.advance(len(df), int((df["status"] != "ok").sum()))
             finally:
                 client.close()
@@ -210,11 +217,18 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
                     cluster.close()
 
     computed = n - resumed
+    phase = time.perf_counter() - t_compute
+    busy = sum(chunk_compute)
+    timing = {"compute_phase_wall_s": phase, "sum_chunk_compute_s": busy, "workers": n_workers,
+              "chunks_computed": len(chunk_compute),
+              # wall time x workers beyond the time spent inside case functions: start-up, transfer,
+              # scheduling, persistence and idle workers at the end, relative to the compute time.
+              "overhead_fraction": (phase * n_workers - busy) / busy if busy > 0 else None}
     results = merge(out_dir, cases, len(bounds))
     res = StudyResult(
         out_dir=out_dir, n_cases=n, n_ok=int((results["status"] == "ok").sum()),
         n_failed=int((results["status"] != "ok").sum()), computed_this_run=computed, resumed=resumed,
-        wall_time_s=0.0, results=results,
+        wall_time_s=0.0, results=results, timing=timing,
     )
     res.failures = failure_records(results, model_params)
     if analyse:
