@@ -39,8 +39,10 @@ OUTPUTS = ("tip_deflection_mm", "load_point_deflection_mm", "max_deflection_mm",
 
 
 def _column(cases: pd.DataFrame, fixed: dict, name: str):
+    # A fresh writable array: columns unpickled on a Dask worker are read-only, and Numba compiles a
+    # separate (slow, ~10 s) specialisation of the Ritz kernel for read-only arrays.
     if name in cases:
-        return cases[name].to_numpy(dtype=float)
+        return np.array(cases[name].to_numpy(dtype=float), copy=True)
     return fixed.get(name)
 
 
@@ -62,7 +64,7 @@ def run_ritz_chunk(cases: pd.DataFrame, fixed: dict) -> pd.DataFrame:
     if force is None:
         raise InputError("force_N", "give force_N as a varied or fixed parameter")
     b = solve_batch(
-        np.broadcast_to(force, (n,)), diameter_mm=_column(cases, fixed, "diameter_mm"),
+        np.array(np.broadcast_to(force, (n,)), dtype=float), diameter_mm=_column(cases, fixed, "diameter_mm"),
         free_length_mm=_column(cases, fixed, "free_length_mm"),
         youngs_modulus_MPa=_column(cases, fixed, "youngs_modulus_MPa"),
         load_point_mm=_column(cases, fixed, "load_point_mm"), thickness_mm=thickness, k_N_per_mm2=k,
