@@ -73,8 +73,11 @@ class NeedleFEStage(_Strict):
     enabled: bool = Field(description="Run the parametric needle-tissue-bone FE model at a demo mesh size.")
     forces_N: Forces = Field(description="Reduction forces, N (|F| <= 2000).")
     needles: Literal[1, 2] = Field(description="One needle (like-for-like with Ritz) or two joined by the clamp.")
-    mesh_size_mm: float = Field(gt=0, le=50, description="Element size in tissue, bone and clamp, mm.")
+    diameter_mm: float = Field(gt=0, le=50, description="Needle diameter, mm.")
+    free_length_mm: float = Field(gt=0, le=1000, description="Needle length from the bone surface to its end, mm.")
+    mesh_size_mm: float = Field(gt=0, le=50, description="Element size in tissue, bone and clamp near the needle, mm.")
     needle_mesh_size_mm: float = Field(gt=0, le=20, description="Element size on the needle, mm.")
+    far_mesh_size_mm: float = Field(gt=0, le=100, description="Element size at the far boundary, mm.")
 
 
 class PelvisStage(_Strict):

@@ -6,10 +6,13 @@ Stages call the public functions of the engine packages; nothing here computes p
 
 from __future__ import annotations
 
+import os
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 from needletissue.report.config import ReproduceConfig
+from needletissue.report.paper import PAPER_RANKING, fe_key
 from needletissue.report.pipeline import Comparison, Stage, StageContext, StageResult
 
 
@@ -120,6 +123,143 @@ def ritz_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
              f"v/cos(theta) {'on' if model.cos_term else 'off'}"]
     return StageResult(data, figures=[d / "ritz_deflection_fig5.png"],
                        comparisons=comps, notes=notes)
+
+
+# --- per-tissue deformation bar chart (results of an FE stage; plotting only) ----------------------
+
+
+def plot_region_deformation(results: list[dict], path, title: str, dpi: int = 110):
+    """Grouped bars: maximum displacement (mm) of every region at every force."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from needletissue.runinfo import write_atomic
+
+    regions = sorted({k for r in results for k in r["max_deformation_mm"]},
+                     key=lambda k: -results[-1]["max_deformation_mm"].get(k, 0.0))
+    x = np.arange(len(regions))
+    w = 0.8 / max(1, len(results))
+    fig, ax = plt.subplots(figsize=(max(6, 0.9 * len(regions) + 2), 4))
+    for i, r in enumerate(results):
+        ax.bar(x + (i - (len(results) - 1) / 2) * w, [r["max_deformation_mm"].get(k, np.nan) for k in regions],
+               w, label=f"{r['force_N']:g} N")
+    ax.set_xticks(x, regions, rotation=30, ha="right")
+    ax.set_ylabel("maximum deformation |u| (mm)")
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=8)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    return write_atomic(path, buf.getvalue())
+
+
+# --- parametric needle-tissue-bone FE model (theory vs FE) ----------------------------------------
+
+
+@dataclass
+class NeedleFE:
+    result: dict  # fem.needle.NeedleModelResult.to_dict (the `fe needle --json` contract)
+
+
+def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
+    from needletissue.fem.needle import NeedleModelConfig, run_needle_model
+    from needletissue.geometry.needle import NeedleGeometry
+
+    c = cfg.needle_fe
+    d = ctx.stage_dir("needle_fe")
+    geom = NeedleGeometry(needles=c.needles, diameter=c.diameter_mm, free_length=c.free_length_mm,
+                          mesh_size=c.mesh_size_mm, needle_mesh_size=c.needle_mesh_size_mm,
+                          far_mesh_size=c.far_mesh_size_mm)
+    res = run_needle_model(NeedleModelConfig(geometry=geom, forces=tuple(c.forces_N)), out_dir=d)
+    data = res.to_dict()
+    figs = [d / v for k, v in res.files.items() if k.startswith("figure")]
+    figs.append(plot_region_deformation(data["results"], d / "needle_fe_region_deformation.png",
+                                        f"Needle FE model ({c.needles} needle(s)): maximum deformation per region",
+                                        cfg.report.dpi))
+    files = [d / v for k, v in res.files.items() if k.startswith("vtu")]
+    comps = []
+    for r in res.results:
+        comps.append(Comparison(f"FE max needle deformation at {r.force_N:g} N (parametric model)",
+                                r.max_needle_deformation_mm, "mm", fe_key(r.force_N),
+                                "paper: anatomical model, two needles"))
+        if r.theory_fe_difference_mm is not None:
+            comps.append(Comparison(f"FE - theory difference at {r.force_N:g} N (parametric model)",
+                                    r.theory_fe_difference_mm, "mm",
+                                    "theory_fe_difference_300N_mm" if r.force_N == 300.0 else None,
+                                    "FE maximum needle deformation minus Ritz tip deflection (paper: "
+                                    "18.062 - 17.63)"))
+    notes = [f"mesh: {res.mesh['tetrahedra']:,} tetrahedra (order {res.mesh['order']}, {res.mesh['dofs']:,} dofs), "
+             f"wall time {res.wall_time_s:.1f} s"]
+    return StageResult(NeedleFE(data), figures=figs, files=files, comparisons=comps, notes=notes)
+
+
+# --- anatomical pelvis model (needs ../shared/data, $NEEDLETISSUE_DATA or --ct) --------------------
+
+
+def shared_data_dir() -> Path | None:
+    """$NEEDLETISSUE_DATA, else <repo root>/../shared/data, when it exists."""
+    env = os.environ.get("NEEDLETISSUE_DATA")
+    cand = Path(env) if env else Path(__file__).resolve().parents[3].parent / "shared" / "data"
+    return cand if cand.is_dir() else None
+
+
+def _pelvis_enabled(cfg: ReproduceConfig, ctx: StageContext):
+    mode = cfg.pelvis.enabled
+    if mode == "off":
+        return False, "disabled in config ([pelvis] enabled = \"off\")"
+    if mode == "on" or ctx.ct is not None or cfg.pelvis.ct or cfg.pelvis.source == "ssm":
+        return True, ""
+    if shared_data_dir() is None:
+        return False, "no ../shared/data (or $NEEDLETISSUE_DATA) and no --ct: anatomical model skipped"
+    return True, ""
+
+
+@dataclass
+class PelvisFE:
+    result: dict  # fem.pelvis.PelvisResult.to_dict (the `fe pelvis --json` contract)
+
+
+def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
+    from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+
+    c = cfg.pelvis
+    d = ctx.stage_dir("pelvis")
+    ct = str(ctx.ct) if ctx.ct else (c.ct or None)
+    labels = str(ctx.labels) if ctx.labels else (c.labels or None)
+    res = run_pelvis_model(PelvisConfig(source=c.source, ct=ct, labels=labels, forces=list(c.forces_N),
+                                        mesh_size=c.mesh_size_mm, out=str(d), figures=True))
+    data = res.to_dict()
+    figs = sorted(d.glob("*.png"))
+    figs.append(plot_region_deformation(data["results"], d / "pelvis_region_deformation.png",
+                                        "Anatomical model: maximum deformation per tissue", cfg.report.dpi))
+    files = sorted(d.glob("*.vtu"))
+    comps = []
+    for r in res.results:
+        comps.append(Comparison(f"FE max needle deformation at {r.force_N:g} N (anatomical model)",
+                                r.max_needle_deformation_mm, "mm", fe_key(r.force_N)))
+        if r.force_N == 300.0:
+            if r.theory_fe_difference_mm is not None:
+                comps.append(Comparison("FE - theory difference at 300 N (anatomical model)",
+                                        r.theory_fe_difference_mm, "mm", "theory_fe_difference_300N_mm"))
+            if "adipose" in r.max_deformation_mm:
+                comps.append(Comparison("Adipose max deformation at 300 N (anatomical model)",
+                                        r.max_deformation_mm["adipose"], "mm", "adipose_max_deformation_300N_mm"))
+    paper_rank = " > ".join(PAPER_RANKING)
+    ours = [t for t in res.ranking if t in ("adipose", "iliopsoas", "iliacus", "gluteus_medius", "gluteus_maximus")]
+    comps.append(Comparison("Deformation ranking at the largest force", " > ".join(ours), "",
+                            note=f"paper (Sec. 3.3): {paper_rank} (iliacus is part of our iliopsoas)"))
+    for t in res.thickness:
+        comps.append(Comparison(f"Soft tissue along {t['needle']}", t["total_mm"], "mm",
+                                "soft_tissue_thickness_mean_mm", "paper: mean of 10 patients (+- 5.43 mm)"))
+    notes = [f"mesh: {res.mesh.get('tetrahedra', 0):,} tetrahedra, wall time {res.wall_time_s:.1f} s", *res.notes]
+    return StageResult(PelvisFE(data), figures=figs, files=files, comparisons=comps, notes=notes)
 
 
 def stage_list() -> list[Stage]:
