@@ -61,9 +61,16 @@ def _outputs(res):
 
 
 def test_local_cluster_two_workers_equals_serial(tmp_path):
+    """A real 2-worker LocalCluster, reached through --scheduler ADDRESS (the CLI's default cluster is
+    exercised by the kill-and-resume test)."""
+    from dask.distributed import LocalCluster
+
     cfg = load_study(_write(tmp_path, LHS.format(samples=1200, chunk=150)))
     serial = run_study(cfg, tmp_path / "serial", serial=True, progress=False, analyse=False)
-    dask = run_study(cfg, tmp_path / "dask", workers=2, progress=False, analyse=False)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        dask = run_study(cfg, tmp_path / "dask", scheduler=cluster.scheduler_address, progress=False,
+                         analyse=False)
+    assert dask.timing["workers"] == 2
     assert serial.n_ok == dask.n_ok == 1200
     pd.testing.assert_frame_equal(_outputs(serial), _outputs(dask), check_exact=False, rtol=1e-12)
     # both ran every chunk in their own run, on different executors
