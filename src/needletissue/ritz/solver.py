@@ -262,17 +262,20 @@ def solve_forces(forces, model: RitzModel | None = None, order=3, tol_mm: float 
     return [_result(F, C, S, R, model, m, tol) for m in range(N)]
 
 
+def _index(i, shape) -> tuple:
+    return tuple(int(j) for j in np.unravel_index(i, shape))
+
+
 def _array(field: str, value, n_layers: int | None = None, *, gt=None, ge=None, le=None):
     a = np.asarray(value, dtype=float)
     bad = ~np.isfinite(a)
     if bad.any():
         raise InputError(field, f"must be finite, got {a[bad].flat[0]} at index "
-                         f"{np.unravel_index(np.flatnonzero(bad)[0], a.shape)}")
+                         f"{_index(np.flatnonzero(bad)[0], a.shape)}")
     for op, bound, ok in (("> ", gt, lambda x, b: x > b), (">= ", ge, lambda x, b: x >= b)):
         if bound is not None and not ok(a, bound).all():
             i = np.flatnonzero(~ok(a, bound))[0]
-            raise InputError(field, f"must be {op}{bound}, got {a.flat[i]} at index "
-                             f"{np.unravel_index(i, a.shape)}")
+            raise InputError(field, f"must be {op}{bound}, got {a.flat[i]} at index {_index(i, a.shape)}")
     return a
 
 
