@@ -21,7 +21,7 @@ from needletissue.studies.runner import run_study
 MC = {
     "study": {"name": "mc1e6", "model": "ritz", "method": "monte_carlo", "samples": 1_000_000, "seed": 1,
               "chunk_size": 50_000},
-    "fixed": {"free_length_mm": 84.0},
+    "fixed": {"free_length_mm": 84.18},
     "parameters": {
         "force_N": {"distribution": "uniform", "low": 100.0, "high": 300.0},
         "tissue_thickness_mm": {"distribution": "truncnorm", "mean": 31.82, "std": 5.43, "low": 15.53, "high": 48.11},

@@ -117,7 +117,7 @@ def ritz_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
         inc = 100.0 * (by_force[300.0].tip_deflection_mm / by_force[100.0].tip_deflection_mm - 1.0)
         comps.append(Comparison("Ritz tip deflection increase, 300 N over 100 N", inc, "%",
                                 "ritz_increase_300_vs_100N_percent",
-                                "a stiffening model gives at most +200 % (3x the force); see docs/ritz.md"))
+                                "+200 % is the most any positive parameters give (w is sub-linear in F; docs/ritz.md)"))
     notes = [f"needle d = {model.diameter_mm:g} mm, free length l = {model.free_length_mm:g} mm, "
              f"E = {model.youngs_modulus_MPa:g} MPa, order {cfg.ritz.order}, "
              f"v/cos(theta) {'on' if model.cos_term else 'off'}"]
