@@ -12,7 +12,7 @@ def register(app: typer.Typer, groups) -> None:
     def study(
         config: Path = typer.Option(..., "--config", help="Study TOML: [study], [fixed], [parameters.NAME] "
                                     "(units in each parameter's name: _mm, _N, _MPa, _N_per_mm2). See docs/studies.md."),
-        out: Path = typer.Option(None, "--out", help="Output folder; default study-<name>/ beside the config. "
+        out: Path = typer.Option(None, "--out", help="Output folder; default results/study-<name>/. "
                                  "Rerunning into the same folder resumes."),
         scheduler: str = typer.Option(None, "--scheduler", help="Address of an existing Dask scheduler "
                                       "(e.g. tcp://host:8786); default: a LocalCluster on this machine."),
@@ -32,7 +32,7 @@ def register(app: typer.Typer, groups) -> None:
         from needletissue.studies.runner import run_study
 
         cfg = load_study(config)  # every config error before any computation
-        out = out or config.parent / f"study-{cfg.study.name}"
+        out = out or Path("results") / f"study-{cfg.study.name}"
         res = run_study(cfg, out, scheduler=scheduler, workers=workers, serial=serial, progress=not quiet)
         con = Console()
         con.print(f"{res.n_cases:,} cases: {res.n_ok:,} ok, {res.n_failed:,} failed "
