@@ -71,3 +71,23 @@ def test_ritz_monte_carlo_1e6_local_cluster(benchmark, warmed):
     assert res.n_ok == 1_000_000
     benchmark.extra_info.update(res.timing)
     print(f"\n1e6 Ritz MC on 2 workers: {res.wall_time_s:.1f} s (target < 60 s); timing {res.timing}")
+
+
+FE_SWEEP = {
+    # Coarse demo meshes: four FE cases, one Dask task each.
+    "study": {"name": "fe_sweep", "model": "fe_needle", "method": "grid", "chunk_size": 1},
+    "fixed": {"needles": 1, "mesh_size_mm": 8.0, "needle_mesh_size_mm": 3.0, "far_mesh_size_mm": 30.0},
+    "parameters": {"force_N": {"values": [100.0, 300.0]}, "diameter_mm": {"values": [4.5, 5.5]}},
+}
+
+
+def test_fe_sweep_scheduling_overhead(benchmark):
+    """Overhead of running FE cases as Dask tasks: (compute-phase wall x workers - time inside the case
+    function) / time inside the case function. Target < 5 %."""
+    cfg = parse_study(FE_SWEEP)
+    res = benchmark.pedantic(_run, args=(cfg,), kwargs={"workers": 2}, rounds=1, iterations=1)
+    assert res.n_ok == 4, res.failures
+    benchmark.extra_info.update(res.timing)
+    t = res.timing
+    print(f"\nFE sweep, 4 cases on 2 workers: compute phase {t['compute_phase_wall_s']:.1f} s, inside cases "
+          f"{t['sum_chunk_compute_s']:.1f} s, overhead {100 * t['overhead_fraction']:.1f} % (target < 5 %)")

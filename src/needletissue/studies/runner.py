@@ -187,7 +187,8 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
 
     chunk_compute = []
     n_workers = 1
-    t_compute = time.perf_counter()
+    cluster_start = 0.0
+    t_compute = t_end = time.perf_counter()
     with _Progress(n, resumed, failed_before, progress, cfg.study.name) as bar:
         if pending and serial:
             for i, s, e in pending:
@@ -195,10 +196,13 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
                 _persist(out_dir, i, df, run_id)
                 chunk_compute.append(float(df["chunk_wall_time_s"].iloc[0]))
                 bar.advance(len(df), int((df["status"] != "ok").sum()))
+            t_end = time.perf_counter()
         elif pending:
             from dask.distributed import as_completed
 
             client, cluster = _client(scheduler, workers)
+            cluster_start = time.perf_counter() - t_compute
+            t_compute = time.perf_counter()  # the cluster's start-up is reported apart
             n_workers = max(1, len(client.scheduler_info().get("workers", {})) or workers)
             try:
                 futures = {}
@@ -211,18 +215,19 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
                     _persist(out_dir, futures[fut], df, run_id)
                     chunk_compute.append(float(df["chunk_wall_time_s"].iloc[0]))
                     bar.advance(len(df), int((df["status"] != "ok").sum()))
+                t_end = time.perf_counter()  # before the cluster shuts down
             finally:
                 client.close()
                 if cluster is not None:
                     cluster.close()
 
     computed = n - resumed
-    phase = time.perf_counter() - t_compute
+    phase = max(0.0, t_end - t_compute)
     busy = sum(chunk_compute)
-    timing = {"compute_phase_wall_s": phase, "sum_chunk_compute_s": busy, "workers": n_workers,
-              "chunks_computed": len(chunk_compute),
-              # wall time x workers beyond the time spent inside case functions: start-up, transfer,
-              # scheduling, persistence and idle workers at the end, relative to the compute time.
+    timing = {"cluster_start_s": cluster_start, "compute_phase_wall_s": phase, "sum_chunk_compute_s": busy,
+              "workers": n_workers, "chunks_computed": len(chunk_compute),
+              # wall time x workers beyond the time spent inside case functions: transfer, scheduling,
+              # persistence and idle workers at the end, relative to the compute time.
               "overhead_fraction": (phase * n_workers - busy) / busy if busy > 0 else None}
     results = merge(out_dir, cases, len(bounds))
     res = StudyResult(
