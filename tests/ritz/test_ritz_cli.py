@@ -89,3 +89,14 @@ def test_bad_input_exit_code_2_without_traceback():
     p = _cli("ritz", "--force", "100", "--diameter", "-5")
     assert p.returncode == 2 and "diameter_mm" in p.stderr and "> 0" in p.stderr
     assert "Traceback" not in p.stderr
+
+
+@pytest.mark.parametrize("args", [["ritz", "--help"], ["ritz", "calibrate", "--help"]])
+def test_help_states_units(args):
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0 and "mm" in r.output
+
+
+def test_missing_force_is_input_error():
+    r = CliRunner().invoke(app, ["ritz"])
+    assert isinstance(r.exception, InputError) and "--force" in str(r.exception)

@@ -195,8 +195,8 @@ def _run(F, KB, L, Z3, T, K, cos_term, order, auto, max_order, tol, parallel):
         fn, chunks = kernel.solve_serial, 1
     fn(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, *_TABLES, C, S, R, chunks)
     status = S[:, kernel.STATUS]
-    bad = np.flatnonzero(status != kernel.OK)
-    if bad.size:
+    if status.any():
+        bad = np.flatnonzero(status != kernel.OK)
         m = bad[0]
         why = {kernel.MAX_ITER: "iteration limit", kernel.LINE_SEARCH: "line search failed",
                kernel.NOT_FINITE: "non-finite energy"}[int(status[m])]
@@ -334,6 +334,8 @@ def solve_batch(force, *, diameter_mm=None, free_length_mm=None, youngs_modulus_
             raise InputError("load_point_mm", f"must be in (0, free_length_mm], got {Z3[m]} > {l[m]} "
                              f"at index {m}")
     KB = E * (np.pi * d**4 / 64.0) / l**3
+    # one compiled signature only: C-contiguous, writeable float64 (broadcast views are read-only)
+    F, KB, l, Z3, T, K = (np.require(a, np.float64, ["C", "W"]) for a in (F, KB, l, Z3, T, K))
     C, S, R = _run(F, KB, l, Z3, T, K, model.cos_term, p, auto, max_order, tol, parallel)
     return BatchResult(
         force_N=F,
