@@ -60,13 +60,13 @@ class NeedleGeometry:
     adipose_thickness: float = 10.0  # mm (paper)
     bone_thickness: float = 40.0     # bone plate thickness, mm
     cortical_thickness: float = 1.5  # cortical shell thickness t_c, mm
-    half_width: float = 60.0         # lateral extent beyond the outer needle axis, each side, mm
+    half_width: float = 40.0         # lateral extent beyond the outer needle axis, each side, mm
     grip_length: float = 20.0        # clamp height along the needles (gripper length), mm
     clamp_width: float = 20.0        # clamp bar size in y, mm
     clamp_overhang: float = 10.0     # clamp bar beyond the outer needle axis in x, mm
-    needle_mesh_size: float = 1.0    # element size on the needles, mm
-    mesh_size: float = 3.0           # element size in tissue, bone and clamp near the needles, mm
-    far_mesh_size: float = 15.0      # element size at the far boundary (graded from mesh_size), mm
+    needle_mesh_size: float = 2.0    # element size on the needles, mm
+    mesh_size: float = 4.0           # element size in tissue, bone and clamp near the needles, mm
+    far_mesh_size: float = 20.0      # element size at the far boundary (graded from mesh_size), mm
     axis_points: bool = True         # embed each needle axis in the mesh (exact deflection curve)
 
     def __post_init__(self):
