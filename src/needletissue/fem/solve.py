@@ -28,6 +28,13 @@ class _Loads:
         for i, bc in enumerate(bcs):
             if isinstance(bc, Fixed):
                 comps = [(c, 0.0) for c in bc.components]
+            elif isinstance(bc, PrescribedDisplacement) and callable(bc.value):
+                nodes = mesh.surface_nodes(bc.surface)
+                vals = np.asarray(bc.value(mesh.points[nodes]), float)
+                if vals.shape != (len(nodes), 3) or not np.isfinite(vals).all():
+                    raise InputError(f"PrescribedDisplacement({bc.surface!r}).value",
+                                     f"the callable must return finite (k, 3) mm for the k={len(nodes)} surface nodes")
+                comps = list(enumerate(vals.T))
             elif isinstance(bc, PrescribedDisplacement):
                 if len(bc.value) != 3:
                     raise InputError(f"PrescribedDisplacement({bc.surface!r}).value", "needs 3 components (mm or None)")
@@ -158,20 +165,27 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     newton_s = 0.0
     norms: list[list[float]] = []
     out = []
-    with bar if progress else nullcontext():
+    with bar if progress else nullcontext(), linsolve.single_threaded_openblas():
         for target in lams:
             while lam < target * (1 - 1e-12):
-                dl = min(step, target - lam, max_step)
+                # equal sub-steps no larger than the allowed increment (no tiny remainders)
+                rest = target - lam
+                dl = rest / np.ceil(rest / min(step, max_step) - 1e-9)
                 saved = [f.values.copy() for f in field.fields]
                 checkpoints = [b.checkpoint() if hasattr(b, "checkpoint") else None for b in bodies]
                 ext0 = loads.apply(model, lam + dl)
                 ok, res, why = False, None, ""
                 ts = time.perf_counter()
                 try:
-                    res = fem.newtonraphson(
-                        x0=field, items=all_items, dof1=loads.dof1, dof0=loads.dof0, ext0=ext0,
-                        solver=linear, tol=tol, maxiter=maxiter, verbose=0, plugins=[plugin])
+                    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):  # failures are handled
+                        res = fem.newtonraphson(
+                            x0=field, items=all_items, dof1=loads.dof1, dof0=loads.dof0, ext0=ext0,
+                            solver=linear, tol=tol, maxiter=maxiter, verbose=0, plugins=[plugin])
                     ok = bool(res.success) and np.all(np.isfinite(res.fun))
+                    if ok:  # the energies are defined for det F < 0 too: reject inverted elements
+                        jmin = min(_min_det_f(b) for b in bodies)
+                        if not jmin > 0:
+                            ok, why = False, f"inverted elements (min det F = {jmin:.3g})"
                 except InputError:
                     raise
                 except (ValueError, ArithmeticError, RuntimeError, np.linalg.LinAlgError) as exc:
@@ -215,6 +229,12 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                                     {"newton": newton_s, "linear_solve": linear.seconds,
                                      "assembly_and_update": newton_s - linear.seconds}, norms))
     return out
+
+
+def _min_det_f(body) -> float:
+    """Smallest det F over the quadrature points of a body's last evaluation (the converged state)."""
+    F = body.results.kinematics[0]
+    return float(np.min(np.linalg.det(np.moveaxis(F, (0, 1), (-2, -1)))))
 
 
 def _result(model, loads, fvec, lam, nsteps, nit, ncut, wall, linear, newton_s, norms) -> FEResult:
