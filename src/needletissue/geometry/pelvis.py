@@ -455,12 +455,12 @@ def _frame(axis, across):
 
 
 def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needle_size: float | None = None,
-               far_size: float | None = None, cortical_thickness: float = 1.5, refine_radius: float = 60.0,
+               far_size: float | None = None, cortical_thickness: float = 1.5, refine_radius: float = 35.0,
                sacroiliac_gap: float | None = None, smoothing: float = 0.7, threads: int = 1) -> PelvisMesh:
     """Conforming linear tet mesh of the cropped anatomy with two needles and the clamp.
 
     mesh_size: soft-tissue element size next to the needles, mm (the paper: 3 mm); needle_size default
-    mesh_size/2 (quadratic elements are used for the solve); far_size default 3*mesh_size, reached at
+    2*mesh_size/3 (quadratic elements are used for the solve); far_size default 4*mesh_size, reached at
     `refine_radius` mm from the needles. Hip-bone tets whose centroid lies less than
     max(cortical_thickness, half the tet's longest edge) below the bone surface are cortical bone
     (the 3 mm CT does not resolve the cortex; a one-element shell where elements are coarse).
@@ -469,8 +469,8 @@ def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needl
     from scipy import ndimage
 
     check_number("mesh_size", mesh_size, ge=0.5, le=20)
-    needle_size = mesh_size / 2 if needle_size is None else check_number("needle_size", needle_size, ge=0.2, le=10)
-    far_size = 3 * mesh_size if far_size is None else check_number("far_size", far_size, ge=mesh_size, le=60)
+    needle_size = 2 * mesh_size / 3 if needle_size is None else check_number("needle_size", needle_size, ge=0.2, le=10)
+    far_size = 4 * mesh_size if far_size is None else check_number("far_size", far_size, ge=mesh_size, le=60)
     check_number("cortical_thickness", cortical_thickness, gt=0, le=10)
     sacroiliac_gap = 1.5 * vol.spacing if sacroiliac_gap is None else sacroiliac_gap
     paths = needle_paths(vol, site)
@@ -665,6 +665,12 @@ def _surfaces(pts, tets, names, vol, frame, c_bottom, h_clamp, si_gap):
     out["midline"] = bnd & on(0, medial_x)
     rel = (pts[f] - c_bottom) @ frame[2]
     out["clamp_load"] = bnd & (fo == "clamp") & np.all(np.abs(rel - h_clamp) < 1e-6 * h_clamp + 1e-6, axis=1)
+    # Disjoint node sets (reactions per support then add up to the total): a face touching a node of an
+    # earlier support set is left to that set.
+    taken = np.zeros(len(pts), bool)
+    for n in ("femur_fixed", "sacrum_fixed", "sacroiliac_joint", "midline", "clamp_load"):
+        out[n] = out[n] & ~taken[f].any(axis=1)
+        taken[f[out[n]].ravel()] = True
     surfaces = {}
     for n, m in out.items():
         if not m.any():
