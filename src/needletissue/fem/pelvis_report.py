@@ -1,0 +1,93 @@
+"""Figures of the anatomical pelvis model: off-screen renders (PyVista) and comparison plots (Matplotlib)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+
+def figures(res, fe_last, mesh, out_dir) -> list[str]:
+    """pelvis_deformation.png (section through the needles, |u| at the largest force),
+    pelvis_needle_vs_force.png (FE, Ritz, paper), pelvis_tissue_deformation.png (per region)."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    files = [_render(res, fe_last, mesh, out_dir / "pelvis_deformation.png")]
+    files += _plots(res, out_dir)
+    return [str(f) for f in files]
+
+
+def _render(res, fe_last, mesh, path):
+    os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+    import pyvista as pv
+
+    pv.OFF_SCREEN = True
+    cells = mesh.cells
+    ctype = pv.CellType.QUADRATIC_TETRA if cells.shape[1] == 10 else pv.CellType.TETRA
+    conn = np.hstack([np.full((len(cells), 1), cells.shape[1]), cells]).ravel()
+    grid = pv.UnstructuredGrid(conn, np.full(len(cells), ctype, np.uint8), mesh.points)
+    u = fe_last.displacement
+    grid.point_data["|u| mm"] = np.linalg.norm(u, axis=1)
+    tag = np.zeros(len(cells), int)
+    for i, ids in enumerate(mesh.regions.values()):
+        tag[ids] = i
+    grid.cell_data["region"] = tag
+    grid = grid.linear_copy()
+    axes = np.array(res.site["needle_axes_mm"], float)
+    centre = axes.reshape(-1, 3).mean(axis=0)
+    d = np.asarray(res.site["direction"], float)
+    f = np.asarray(res.force_vector_unit, float)
+    normal = np.cross(d, f)
+    normal /= np.linalg.norm(normal)
+    section = grid.clip(normal=normal, origin=centre, crinkle=True)
+    p = pv.Plotter(off_screen=True, window_size=(1400, 1000))
+    p.add_mesh(section, scalars="|u| mm", cmap="viridis", show_edges=False,
+               scalar_bar_args={"title": f"|u| (mm) at {res.results[-1].force_N:.0f} N"})
+    p.add_mesh(grid.extract_feature_edges(), color="grey", opacity=0.15)
+    p.camera_position = [tuple(centre - 400 * normal), tuple(centre), (0, 0, 1)]
+    p.add_text("section through the needles (plane of needle axis and force)", font_size=10)
+    p.screenshot(str(path))
+    p.close()
+    return path
+
+
+def _plots(res, out_dir):
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from needletissue.fem.pelvis import PAPER
+
+    F = [r.force_N for r in res.results]
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    ax.plot(F, [r.max_needle_deformation_mm for r in res.results], "o-", label="FE, this model")
+    ax.plot(F, [r.ritz_tip_deflection_mm for r in res.results], "s--", label="Ritz, measured layers")
+    ax.plot(PAPER["forces_N"], PAPER["max_needle_deformation_mm"], "k^:", label="paper FE")
+    ax.plot([300.0], [PAPER["ritz_tip_deflection_mm_300N"]], "kx", ms=9, label="paper Ritz (300 N)")
+    ax.set_xlabel("reduction force (N)")
+    ax.set_ylabel("max needle deformation (mm)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    f1 = out_dir / "pelvis_needle_vs_force.png"
+    fig.tight_layout()
+    fig.savefig(f1, dpi=130)
+    plt.close(fig)
+
+    last = res.results[-1].max_deformation_mm
+    names = sorted(last, key=lambda k: -last[k])
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    ax.barh(names[::-1], [last[n] for n in names[::-1]], color="tab:blue")
+    if "adipose" in last:
+        ax.plot([PAPER["adipose_max_deformation_mm_300N"]], [names[::-1].index("adipose")], "r*", ms=12,
+                label="paper adipose, 300 N")
+        ax.legend()
+    ax.set_xlabel(f"max deformation at {res.results[-1].force_N:.0f} N (mm)")
+    ax.grid(alpha=0.3, axis="x")
+    f2 = out_dir / "pelvis_tissue_deformation.png"
+    fig.tight_layout()
+    fig.savefig(f2, dpi=130)
+    plt.close(fig)
+    return [f1, f2]
