@@ -230,6 +230,8 @@ class _StageProgress:
     def finish(self, stage: Stage, status: str, text: str):
         if self.p:
             colour = {"ok": "green", "skipped": "dim", "failed": "red"}[status]
-            short = text.splitlines()[0][:40] if text else ""
+            from rich.markup import escape
+
+            short = escape(text.splitlines()[0][:60]) if text else ""
             self.p.update(self.ids[stage.name], completed=1, status=f"[{colour}]{status}[/{colour}] {short}")
             self.p.stop_task(self.ids[stage.name])
