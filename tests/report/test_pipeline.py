@@ -29,6 +29,12 @@ def _interrupted(cfg, ctx):
     raise KeyboardInterrupt
 
 
+def _die(cfg, ctx):
+    import os
+
+    os._exit(139)
+
+
 def _broken(cfg, ctx):
     raise RuntimeError("solver exploded")
 
@@ -79,3 +85,13 @@ def test_refuses_foreign_folder(tmp_path):
     with pytest.raises(InputError, match="--out"):
         run_reproduce(load_config(), out, [], progress=False)
     assert (out / "thesis.tex").read_text() == "precious"
+
+
+def test_isolated_stage_that_crashes_fails_alone(tmp_path):
+    """A stage whose process dies (here: os._exit, as a segfault would) is a failed stage; the run ends."""
+    out = tmp_path / "res"
+    res = run_reproduce(load_config(), out, [Stage("crash", "C", _die, _always, isolated=True),
+                                             Stage("s", "S", _writes(3.0), _always)], progress=False)
+    data = json.loads((out / "results.json").read_text())
+    assert data["stages"]["crash"]["status"] == "failed" and "died" in data["stages"]["crash"]["reason"]
+    assert data["stages"]["s"]["status"] == "ok" and not res.ok

@@ -72,6 +72,23 @@ class Stage:
     title: str
     run: Callable[[ReproduceConfig, "StageContext"], StageResult]
     enabled: Callable[[ReproduceConfig, "StageContext"], tuple[bool, str]]
+    # Run in a child process: a crash in native code (mesher, sparse solver, VTK) then fails this
+    # stage only instead of the whole run. The function must be importable (module level).
+    isolated: bool = False
+
+
+def _run_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext") -> StageResult:
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
+        fut = pool.submit(stage.run, cfg, StageContext(ctx.run_dir, ctx.ct, ctx.labels))
+        try:
+            return fut.result()
+        except BrokenProcessPool:
+            raise RuntimeError(f"the {stage.name} stage's process died (a crash in native code, e.g. a "
+                               "segmentation fault, or killed for memory)") from None
 
 
 @dataclass
@@ -142,9 +159,7 @@ def run_reproduce(cfg: ReproduceConfig, out: str | Path, stages: list[Stage], *,
                 bar.start(stage)
                 ts = time.perf_counter()
                 try:
-                    res = stage.run(cfg, ctx)
-                except InputError:
-                    raise
+                    res = _run_isolated(stage, cfg, ctx) if stage.isolated else stage.run(cfg, ctx)
                 except Exception as exc:  # a failed stage is reported; the others still run
                     dt = time.perf_counter() - ts
                     msg = f"{type(exc).__name__}: {exc}"

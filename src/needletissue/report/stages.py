@@ -269,6 +269,6 @@ def stage_list() -> list[Stage]:
         Stage("traction", "Traction validation (Sec. 3.2)", traction_stage,
               _on("traction")),
         Stage("ritz", "Ritz model, 100-300 N (Fig. 5)", ritz_stage, _on("ritz")),
-        Stage("needle_fe", "Needle FE model, theory vs FE", needle_fe_stage, _on("needle_fe")),
-        Stage("pelvis", "Anatomical pelvis model", pelvis_stage, _pelvis_enabled),
+        Stage("needle_fe", "Needle FE model, theory vs FE", needle_fe_stage, _on("needle_fe"), isolated=True),
+        Stage("pelvis", "Anatomical pelvis model", pelvis_stage, _pelvis_enabled, isolated=True),
     ]
