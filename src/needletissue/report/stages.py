@@ -170,20 +170,32 @@ class NeedleFE:
 
 def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     from needletissue.fem.needle import NeedleModelConfig, run_needle_model
+    from needletissue.fem.needle_plot import plot_deflection_curves
     from needletissue.geometry.needle import NeedleGeometry
+    from needletissue.report.render import plot_theory_vs_fe, try_render
 
     c = cfg.needle_fe
     d = ctx.stage_dir("needle_fe")
     geom = NeedleGeometry(needles=c.needles, diameter=c.diameter_mm, free_length=c.free_length_mm,
                           mesh_size=c.mesh_size_mm, needle_mesh_size=c.needle_mesh_size_mm,
                           far_mesh_size=c.far_mesh_size_mm)
-    res = run_needle_model(NeedleModelConfig(geometry=geom, forces=tuple(c.forces_N)), out_dir=d)
+    # No out_dir: the model's own writer renders with VTK in this process; we write VTU and figures
+    # here and render in a child process (a VTK crash then costs a picture, not the results).
+    res = run_needle_model(NeedleModelConfig(geometry=geom, forces=tuple(c.forces_N)))
     data = res.to_dict()
-    figs = [d / v for k, v in res.files.items() if k.startswith("figure")]
-    figs.append(plot_region_deformation(data["results"], d / "needle_fe_region_deformation.png",
-                                        f"Needle FE model ({c.needles} needle(s)): maximum deformation per region",
-                                        cfg.report.dpi))
-    files = [d / v for k, v in res.files.items() if k.startswith("vtu")]
+    files = []
+    for r in res.results:
+        files.append(d / f"needle_{r.force_N:g}N.vtu")
+        r.fe.write_vtu(files[-1])
+    notes = [f"mesh: {res.mesh['tetrahedra']:,} tetrahedra (order {res.mesh['order']}, {res.mesh['dofs']:,} dofs), "
+             f"wall time {res.wall_time_s:.1f} s"]
+    figs = [plot_deflection_curves(res, d / "needle_deflection_theory_vs_fe.png"),
+            plot_theory_vs_fe(data["results"], d / "needle_max_deformation_vs_force.png",
+                              f"Needle FE model ({c.needles} needle(s)) vs Ritz and the paper", cfg.report.dpi),
+            plot_region_deformation(data["results"], d / "needle_fe_region_deformation.png",
+                                    f"Needle FE model: maximum deformation per region", cfg.report.dpi)]
+    try_render(files[-1], d / "needle_deformed.png", f"needle FE model, {res.results[-1].force_N:g} N "
+               "(true scale), |u| in mm", notes, figs)
     comps = []
     for r in res.results:
         comps.append(Comparison(f"FE max needle deformation at {r.force_N:g} N (parametric model)",
@@ -195,8 +207,6 @@ def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
                                     "theory_fe_difference_300N_mm" if r.force_N == 300.0 else None,
                                     "FE maximum needle deformation minus Ritz tip deflection (paper: "
                                     "18.062 - 17.63)"))
-    notes = [f"mesh: {res.mesh['tetrahedra']:,} tetrahedra (order {res.mesh['order']}, {res.mesh['dofs']:,} dofs), "
-             f"wall time {res.wall_time_s:.1f} s"]
     return StageResult(NeedleFE(data), figures=figs, files=files, comparisons=comps, notes=notes)
 
 
@@ -233,13 +243,23 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     d = ctx.stage_dir("pelvis")
     ct = str(ctx.ct) if ctx.ct else (c.ct or None)
     labels = str(ctx.labels) if ctx.labels else (c.labels or None)
+    from needletissue.report.render import plot_theory_vs_fe, try_render
+
+    # figures=False: the model's VTK section render runs in this process (it crashed once on a 4 mm
+    # mesh); we render the VTU it writes in a child process instead.
     res = run_pelvis_model(PelvisConfig(source=c.source, ct=ct, labels=labels, forces=list(c.forces_N),
-                                        mesh_size=c.mesh_size_mm, out=str(d), figures=True))
+                                        mesh_size=c.mesh_size_mm, out=str(d), figures=False))
     data = res.to_dict()
-    figs = sorted(d.glob("*.png"))
-    figs.append(plot_region_deformation(data["results"], d / "pelvis_region_deformation.png",
-                                        "Anatomical model: maximum deformation per tissue", cfg.report.dpi))
     files = sorted(d.glob("*.vtu"))
+    notes = [f"mesh: {res.mesh.get('tetrahedra', 0):,} tetrahedra, wall time {res.wall_time_s:.1f} s", *res.notes]
+    figs = [plot_theory_vs_fe(data["results"], d / "pelvis_max_deformation_vs_force.png",
+                              "Anatomical model vs Ritz and the paper", cfg.report.dpi),
+            plot_region_deformation(data["results"], d / "pelvis_region_deformation.png",
+                                    "Anatomical model: maximum deformation per tissue", cfg.report.dpi)]
+    last = d / f"pelvis_{res.results[-1].force_N:g}N.vtu"
+    if last.exists():
+        try_render(last, d / "pelvis_deformed.png", f"anatomical model, {res.results[-1].force_N:g} N "
+                   "(true scale), |u| in mm", notes, figs)
     comps = []
     for r in res.results:
         comps.append(Comparison(f"FE max needle deformation at {r.force_N:g} N (anatomical model)",
@@ -258,7 +278,6 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     for t in res.thickness:
         comps.append(Comparison(f"Soft tissue along {t['needle']}", t["total_mm"], "mm",
                                 "soft_tissue_thickness_mean_mm", "paper: mean of 10 patients (+- 5.43 mm)"))
-    notes = [f"mesh: {res.mesh.get('tetrahedra', 0):,} tetrahedra, wall time {res.wall_time_s:.1f} s", *res.notes]
     return StageResult(PelvisFE(data), figures=figs, files=files, comparisons=comps, notes=notes)
 
 
