@@ -145,7 +145,7 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     with tempfile.TemporaryDirectory() as tmp:
         msh = Path(mesh_path) if mesh_path else (Path(out_dir) / "needle_model.msh" if out_dir
                                                 else Path(tmp) / "needle_model.msh")
-        info = mesh_needle_model(g, msh)
+        info = mesh_needle_model(g, msh, order=cfg.order)  # order 2: midside nodes on the true cylinder
         mesh = TaggedMesh.read(msh)
     t_mesh = time.perf_counter() - t0
     mesh.check(regions=g.regions(), surfaces=("bone_fixed", "tissue_far", "gripper"))

@@ -205,7 +205,10 @@ def mesh_needle_model(geometry: NeedleGeometry, path: str | Path, *, order: int 
             raise MeshError(f"gmsh failed to mesh the needle model: {exc} "
                             f"(try a different mesh_size/needle_mesh_size)") from exc
         if order != 1:
+            # curved (CAD-conforming) midside nodes; untangle the few that curving inverts
             gmsh.model.mesh.setOrder(order)
+            gmsh.model.mesh.optimize("HighOrderElastic")
+            gmsh.model.mesh.optimize("HighOrder")
         info = _check_and_count(g, path)
         gmsh.write(str(path))
         info.mesh_time_s = time.perf_counter() - t0
