@@ -184,11 +184,17 @@ def ssm_label_volume(side: str = "right", spacing: float = 2.0, muscle_mm: float
 
     check_number("spacing", spacing, gt=0.5, le=6)
     d = data_dir() / "pelvis_ssm"
-    hips = {s: pv.read(d / f"LLP26_mean_hip_x{s}.stl") for s in ("pos", "neg")}
-    sac = pv.read(d / "LLP26_mean_sacrum.stl")
-    # Which STL is the right hip: the sacrum lies between; orient so that +x = patient right is decided
-    # by the user's side only through the sign of the lateral direction (the mean shape is symmetric).
-    hip = hips["pos"] if side == "right" else hips["neg"]
+    # The SSM frame is LPS-like (+y posterior: the sacrum lies at larger y than the hips; +z superior),
+    # so the "xpos" hip is the left one. Rotate 180 deg about z into RAS.
+    flip = np.array([-1.0, -1.0, 1.0])
+
+    def load(name):
+        m = pv.read(d / f"LLP26_mean_{name}.stl")
+        m.points = m.points * flip
+        return m
+
+    hip = load("hip_xneg" if side == "right" else "hip_xpos")
+    sac = load("sacrum")
     lateral = 1.0 if side == "right" else -1.0
     pad = muscle_mm + adipose_mm + 3 * spacing
     lo = np.minimum(hip.bounds[::2], sac.bounds[::2]) - pad
@@ -203,7 +209,11 @@ def ssm_label_volume(side: str = "right", spacing: float = 2.0, muscle_mm: float
     pts = pv.PolyData(grid.reshape(-1, 3))
 
     def inside(surf):
-        sel = pts.select_enclosed_points(surf, tolerance=1e-6, check_surface=False)
+        import warnings
+
+        with warnings.catch_warnings():  # renamed in newer PyVista; same VTK filter
+            warnings.simplefilter("ignore")
+            sel = pts.select_enclosed_points(surf, tolerance=1e-6, check_surface=False)
         return np.asarray(sel["SelectedPoints"], bool).reshape(shape)
 
     hipm, sacm = inside(hip), inside(sac)
@@ -213,17 +223,20 @@ def ssm_label_volume(side: str = "right", spacing: float = 2.0, muscle_mm: float
     bone = hipm | sacm
     dist = ndimage.distance_transform_edt(~bone, sampling=spacing)
     dhip = ndimage.distance_transform_edt(~hipm, sampling=spacing)
-    # Acetabulum: the hip-bone concavity facing laterally-inferiorly; femoral head proxy = the void
-    # voxels enclosed by it (closing the hip mask with a ball fills the socket).
-    ball = _ball(int(round(14.0 / spacing)))
-    socket = ndimage.binary_closing(hipm, ball) & ~bone
-    socket = ndimage.binary_opening(socket, _ball(int(round(6.0 / spacing))))
-    head = np.zeros_like(socket)
-    if socket.any():
-        cc, n = ndimage.label(socket)
-        sizes = ndimage.sum(socket, cc, range(1, n + 1))
-        head = cc == (1 + int(np.argmax(sizes)))
-        lab[head] = 3
+    # Femoral head proxy: close the hip bone with a 26 mm ball (EDT dilation then erosion); of the
+    # concavities this fills, the acetabulum is the most lateral one.
+    closed = ndimage.distance_transform_edt(dhip <= 26.0, sampling=spacing) > 26.0
+    socket = closed & ~bone
+    cc, n = ndimage.label(socket)
+    if n == 0:
+        raise InputError("ssm", "no acetabulum found on the SSM hip bone")
+    sizes = ndimage.sum(socket, cc, range(1, n + 1))
+    xs = ndimage.mean(grid[..., 0], cc, range(1, n + 1)) * lateral
+    big = np.nonzero(sizes * spacing**3 > 4000.0)[0]  # > 4 cm^3: the socket, not surface creases
+    if len(big) == 0:
+        raise InputError("ssm", "no acetabulum found on the SSM hip bone")
+    head = cc == (1 + big[np.argmax(xs[big])])
+    lab[head] = 3
     soft = (dist > 0) & (dist <= muscle_mm) & (lab == 0)
     # Medial vs lateral side of the wing from the hip bone's distance gradient along x.
     gx = np.gradient(dhip, axis=0) * lateral
@@ -628,7 +641,8 @@ def _largest_face_component(tets, names):
 
 
 def _surfaces(pts, tets, names, vol, frame, c_bottom, h_clamp, si_gap):
-    """Boundary sets: femur_fixed (femur faces on the crop's bottom plane), sacrum_fixed (superior
+    """Boundary sets: femur_fixed (CT: femur faces on the crop's bottom plane; SSM: the femoral-head
+    proxy's faces), sacrum_fixed (superior
     sacral surface: sacrum boundary faces within 6 mm of the sacrum's top), sacroiliac_joint (hip-bone
     faces shared with the sacrum or within si_gap of it), midline (all boundary faces on the medial crop
     plane), clamp_load (the clamp's outer face, where the robot holds it)."""
@@ -644,15 +658,6 @@ def _surfaces(pts, tets, names, vol, frame, c_bottom, h_clamp, si_gap):
     lo, hi = vol.bounds
     tol = 1e-6 * np.abs(hi - lo).max() + 1e-9
     on = lambda axis, val: np.all(np.abs(pts[f][:, :, axis] - val) < tol, axis=1)
-    out = {}
-    out["femur_fixed"] = bnd & (fo == "femur") & on(2, lo[2])
-    sac_top = fc[fo == "sacrum", 2].max()
-    out["sacrum_fixed"] = bnd & (fo == "sacrum") & (fc[:, 2] > sac_top - 6.0)
-    sacm = vol.labels == 2
-    dsac = ndimage.distance_transform_edt(~sacm, sampling=vol.spacing) - 0.5 * vol.spacing
-    hipf = np.isin(fo, ("hip_cortical", "hip_cancellous"))
-    d = np.full(len(f), np.inf)
-    d[hipf] = ndimage.map_coordinates(dsac, vol.index(fc[hipf]).T, order=1, mode="nearest")
     # interface faces (count 2) between hip and sacrum: keep once, from the hip side
     other = np.zeros(len(f), object)
     order = np.argsort(inv, kind="stable")
@@ -660,6 +665,20 @@ def _surfaces(pts, tets, names, vol, frame, c_bottom, h_clamp, si_gap):
     pair = np.nonzero(s[1:] == s[:-1])[0]
     other[order[pair]] = fo[order[pair + 1]]
     other[order[pair + 1]] = fo[order[pair]]
+    out = {}
+    if vol.source.startswith("ssm"):  # femoral-head proxy: its whole surface is the fixed hip joint
+        out["femur_fixed"] = (fo == "femur") & (bnd | np.isin(other, ("hip_cortical", "hip_cancellous")))
+    else:
+        out["femur_fixed"] = bnd & (fo == "femur") & on(2, lo[2])
+    sac_top = fc[fo == "sacrum", 2].max()
+    # outer faces of the sacrum (free, or against soft tissue as in the SSM's offset layers)
+    sac_outer = (fo == "sacrum") & (bnd | ((other != "sacrum") & (other != 0)))
+    out["sacrum_fixed"] = sac_outer & (fc[:, 2] > sac_top - 6.0)
+    sacm = vol.labels == 2
+    dsac = ndimage.distance_transform_edt(~sacm, sampling=vol.spacing) - 0.5 * vol.spacing
+    hipf = np.isin(fo, ("hip_cortical", "hip_cancellous"))
+    d = np.full(len(f), np.inf)
+    d[hipf] = ndimage.map_coordinates(dsac, vol.index(fc[hipf]).T, order=1, mode="nearest")
     out["sacroiliac_joint"] = hipf & ((bnd & (d < si_gap)) | (other == "sacrum"))
     medial_x = lo[0] if vol.side == "right" else hi[0]
     out["midline"] = bnd & on(0, medial_x)
@@ -677,3 +696,43 @@ def _surfaces(pts, tets, names, vol, frame, c_bottom, h_clamp, si_gap):
             raise InputError("mesh", f"boundary set {n!r} is empty: the crop or the site does not fit this anatomy")
         surfaces[n] = f[m]
     return surfaces
+
+
+def curve_needles(qpoints: np.ndarray, qcells: np.ndarray, regions: dict, needle_axes, radius: float,
+                  tol: float = 1e-3) -> np.ndarray:
+    """Quadratic (tetra10, VTK order) points with the needles' lateral surfaces made exactly cylindrical.
+
+    gmsh puts the corner nodes on the cylinder, but straight-edge midpoints cut its chords: with 2 mm
+    elements on a 5 mm pin the polygonal cross-section loses ~10 % of its area and ~20 % of its second
+    moment. Each midside node of an edge on a needle's lateral surface (both corners at `radius` from
+    the axis, edge on a boundary face of the needle region) is moved radially onto the cylinder.
+    Returns a new points array; the tissue and bone elements sharing the nodes follow the curved face.
+    """
+    from needletissue.fem.mesh import TET10_EDGES
+
+    pts = np.array(qpoints, float)
+    face_edges = np.array([[0, 1], [1, 2], [0, 2]])
+    faces10 = np.array([[0, 1, 2, 4, 5, 6], [0, 1, 3, 4, 8, 7], [0, 2, 3, 6, 9, 7], [1, 2, 3, 5, 9, 8]])
+    for i, (b, t) in enumerate(needle_axes):
+        cells = qcells[regions[f"needle_{i + 1}"]]
+        f = cells[:, faces10].reshape(-1, 6)
+        key = np.sort(f[:, :3], axis=1)
+        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        f = f[cnt[inv.ravel()] == 1]  # boundary faces of this needle
+        axis = (t - b) / np.linalg.norm(t - b)
+
+        def radial(p):
+            d = p - b
+            return d - (d @ axis)[:, None] * axis
+
+        corner_r = np.linalg.norm(radial(pts[f[:, :3]].reshape(-1, 3)), axis=1).reshape(-1, 3)
+        on = np.abs(corner_r - radius) < tol * radius
+        # face edge k joins corners face_edges[k]; its midside node is column 3 + k
+        for k, (a, c) in enumerate(face_edges):
+            sel = on[:, a] & on[:, c]
+            mids = np.unique(f[sel, 3 + k])
+            rv = radial(pts[mids])
+            rn = np.linalg.norm(rv, axis=1)
+            pts[mids] += rv * (radius / rn - 1.0)[:, None]
+    assert TET10_EDGES.shape == (6, 2)
+    return pts
