@@ -12,6 +12,9 @@ from needletissue.studies import analysis
 from needletissue.studies.models import get_model
 
 
+CSV_MAX_ROWS = 200_000
+
+
 def write_outputs(cfg, res, params: list[str]) -> None:
     out = res.out_dir
     model = get_model(cfg.study.model)
@@ -20,7 +23,10 @@ def write_outputs(cfg, res, params: list[str]) -> None:
     buf = io.BytesIO()
     df.to_parquet(buf, index=False)
     write_atomic(out / "results.parquet", buf.getvalue())
-    write_atomic(out / "results.csv", df.to_csv(index=False))
+    # CSV is for people and spreadsheets; past CSV_MAX_ROWS it is hundreds of MB: Parquet only.
+    csv = len(df) <= CSV_MAX_ROWS
+    if csv:
+        write_atomic(out / "results.csv", df.to_csv(index=False))
     write_atomic(out / "failures.csv", df[df["status"] != "ok"].to_csv(index=False))
 
     summary = {"statistics": analysis.statistics(df, outputs)}
@@ -37,7 +43,7 @@ def write_outputs(cfg, res, params: list[str]) -> None:
         "n_cases": res.n_cases, "n_ok": res.n_ok, "n_failed": res.n_failed,
         "computed_this_run": res.computed_this_run, "resumed": res.resumed, "timing": res.timing,
         "failures": res.failures[:1000], "summary": summary,
-        "files": {"results": ["results.parquet", "results.csv"], "failures": "failures.csv",
+        "files": {"results": ["results.parquet", *(["results.csv"] if csv else [])], "failures": "failures.csv",
                   "figures": [str(p.relative_to(out)) for p in res.figures]},
     }
     # results.json last: its presence marks a finished study.
