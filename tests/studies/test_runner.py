@@ -57,7 +57,8 @@ def _write(tmp_path, text, name="s.toml"):
 
 
 def _outputs(res):
-    return res.results.drop(columns=["run_id", "error", "chunk_wall_time_s"], errors="ignore").sort_values("case_id").reset_index(drop=True)
+    return res.results.drop(columns=["run_id", "error", "chunk_wall_time_s", "chunk_start_unix",
+                                      "chunk_end_unix", "chunk_worker"], errors="ignore").sort_values("case_id").reset_index(drop=True)
 
 
 def test_local_cluster_two_workers_equals_serial(tmp_path):

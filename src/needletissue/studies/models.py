@@ -9,6 +9,8 @@ processes can import them.
 from __future__ import annotations
 
 import math
+import os
+import socket
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -120,9 +122,16 @@ def run_chunk(model_name: str, cases: pd.DataFrame, fixed: dict) -> pd.DataFrame
 
     Adds ``chunk_wall_time_s`` (compute time of the whole chunk, the same on each of its rows), from
     which the scheduling overhead of a study is measured."""
+    model = get_model(model_name)  # imports the engine: worker start-up, counted outside compute
+    start = time.time()
     t0 = time.perf_counter()
-    out = _bisect(get_model(model_name), cases, fixed)
+    out = _bisect(model, cases, fixed)
     out["chunk_wall_time_s"] = time.perf_counter() - t0
+    # Wall-clock start/end and the process that ran it: the runner separates scheduling gaps from
+    # compute and from workers idling at the end (same-host clocks; approximate on remote clusters).
+    out["chunk_start_unix"] = start
+    out["chunk_end_unix"] = time.time()
+    out["chunk_worker"] = f"{socket.gethostname()}:{os.getpid()}"
     return out
 
 

@@ -19,7 +19,8 @@ def write_outputs(cfg, res, params: list[str]) -> None:
     out = res.out_dir
     model = get_model(cfg.study.model)
     outputs = list(model.outputs)
-    df = res.results.drop(columns=["run_id", "chunk_wall_time_s"], errors="ignore")
+    df = res.results.drop(columns=["run_id", "chunk_wall_time_s", "chunk_start_unix", "chunk_end_unix",
+                                    "chunk_worker"], errors="ignore")
     buf = io.BytesIO()
     df.to_parquet(buf, index=False)
     write_atomic(out / "results.parquet", buf.getvalue())

@@ -186,15 +186,18 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
         return cases.iloc[s:e][["case_id", *model_params]].reset_index(drop=True)
 
     chunk_compute = []
+    spans = []  # (worker, start, end) wall clock per computed chunk
     n_workers = 1
     cluster_start = 0.0
     t_compute = t_end = time.perf_counter()
+    t_unix = time.time()
     with _Progress(n, resumed, failed_before, progress, cfg.study.name) as bar:
         if pending and serial:
             for i, s, e in pending:
                 df = run_chunk(model.name, task_input(s, e), fixed)
                 _persist(out_dir, i, df, run_id)
                 chunk_compute.append(float(df["chunk_wall_time_s"].iloc[0]))
+                spans.append(_span(df))
                 bar.advance(len(df), int((df["status"] != "ok").sum()))
             t_end = time.perf_counter()
         elif pending:
@@ -203,6 +206,7 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
             client, cluster = _client(scheduler, workers)
             cluster_start = time.perf_counter() - t_compute
             t_compute = time.perf_counter()  # the cluster's start-up is reported apart
+            t_unix = time.time()
             n_workers = max(1, len(client.scheduler_info().get("workers", {})) or workers)
             try:
                 futures = {}
@@ -214,6 +218,7 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
                     df = fut.result()
                     _persist(out_dir, futures[fut], df, run_id)
                     chunk_compute.append(float(df["chunk_wall_time_s"].iloc[0]))
+                    spans.append(_span(df))
                     bar.advance(len(df), int((df["status"] != "ok").sum()))
                 t_end = time.perf_counter()  # before the cluster shuts down
             finally:
@@ -228,7 +233,8 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
               "workers": n_workers, "chunks_computed": len(chunk_compute),
               # wall time x workers beyond the time spent inside case functions: transfer, scheduling,
               # persistence and idle workers at the end, relative to the compute time.
-              "overhead_fraction": (phase * n_workers - busy) / busy if busy > 0 else None}
+              "overhead_fraction": (phase * n_workers - busy) / busy if busy > 0 else None,
+              **_scheduling(spans, t_unix, busy)}
     results = merge(out_dir, cases, len(bounds))
     res = StudyResult(
         out_dir=out_dir, n_cases=n, n_ok=int((results["status"] == "ok").sum()),
@@ -242,6 +248,27 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
         write_outputs(cfg, res, model_params)
     res.wall_time_s = time.perf_counter() - t0
     return res
+
+
+def _span(df: pd.DataFrame) -> tuple[str, float, float]:
+    r = df.iloc[0]
+    return str(r["chunk_worker"]), float(r["chunk_start_unix"]), float(r["chunk_end_unix"])
+
+
+def _scheduling(spans, t0: float, busy: float) -> dict:
+    """Split the non-compute time per worker: waiting for its first task and gaps between its tasks
+    (scheduling, transfer, result handling) versus idling after its last task while others finish
+    (load imbalance, not scheduling)."""
+    if not spans or busy <= 0:
+        return {}
+    end = max(e for _, _, e in spans)
+    gaps = idle = 0.0
+    for w in {w for w, _, _ in spans}:
+        mine = sorted((s, e) for ww, s, e in spans if ww == w)
+        gaps += max(0.0, mine[0][0] - t0) + sum(max(0.0, b[0] - a[1]) for a, b in zip(mine, mine[1:]))
+        idle += end - mine[-1][1]
+    return {"scheduling_gaps_s": gaps, "scheduling_overhead_fraction": gaps / busy,
+            "idle_at_end_s": idle, "idle_at_end_fraction": idle / busy}
 
 
 def _count_failed(out_dir: Path, done_bounds) -> int:
