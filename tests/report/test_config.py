@@ -86,3 +86,13 @@ def test_config_show_round_trips(tmp_path):
     p = tmp_path / "shown.toml"
     p.write_text(r.stdout)
     assert load_config(p) == load_config()
+
+
+@pytest.mark.parametrize("args", [["reproduce"], ["config"], ["config", "show"], ["study"]])
+def test_help_gives_units(args):
+    from typer.testing import CliRunner
+
+    from needletissue.cli import app
+
+    r = CliRunner().invoke(app, [*args, "--help"])
+    assert r.exit_code == 0 and "Usage" in r.output
