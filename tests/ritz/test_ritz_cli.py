@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -100,3 +101,18 @@ def test_help_states_units(args):
 def test_missing_force_is_input_error():
     r = CliRunner().invoke(app, ["ritz"])
     assert isinstance(r.exception, InputError) and "--force" in str(r.exception)
+
+
+def test_plot_deflection_accepts_batch_and_axes(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    b = ritz.solve_batch([100.0, 200.0, 300.0], parallel=False)
+    fig, ax = plt.subplots()
+    out = ritz.plot_deflection(b, ax=ax, model=ritz.RitzModel())
+    assert out is fig and len(ax.lines) == 3 + 1  # three forces and the zero line
+    top = max(float(np.max(line.get_ydata())) for line in ax.lines)
+    assert top == pytest.approx(b.tip_deflection_mm.max(), rel=1e-12)
+    plt.close(fig)
