@@ -25,6 +25,18 @@ def test_theory_matches_independent_closed_forms():
 
 
 @pytest.mark.parametrize("material", ["muscle", "adipose"])
+def test_fe_material_energy_matches_closed_form(material):
+    """The FElupe energy the FE solves with (tensortrax) gives the theory's incompressible curve."""
+    import felupe as fem
+
+    from needletissue import materials
+
+    lam = np.linspace(1.05, 1.6, 12)
+    _, P, _ = fem.ViewMaterialIncompressible(materials.get(material).isochoric()).uniaxial(lam)
+    np.testing.assert_allclose(P, tr.theory_nominal_stress(material, lam), rtol=1e-6)
+
+
+@pytest.mark.parametrize("material", ["muscle", "adipose"])
 def test_rmse_far_below_paper_and_converges_with_bulk(material):
     """Laterally free block: homogeneous, so any mesh is exact and the only error is compressibility,
     O(mu/K). Ten times K -> ten times smaller RMSE."""
@@ -51,5 +63,10 @@ def test_cli_json_and_plot(tmp_path):
     assert d["material"] == "adipose" and len(d["fe_nominal_stress_MPa"]) == len(d["displacement_mm"]) >= 11
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert json.loads((tmp_path / "run" / "results.json").read_text())["rmse_MPa"] == d["rmse_MPa"]
+    # without --out the run files go next to the figure
+    res2 = CliRunner().invoke(app, ["validate", "traction", "--material", "muscle", "--elements", "1",
+                                    "--plot", str(tmp_path / "fig" / "m.png")])
+    assert res2.exit_code == 0, res2.output
+    assert {p.name for p in (tmp_path / "fig").iterdir()} >= {"m.png", "config.toml", "versions.json", "results.json"}
     bad = CliRunner().invoke(app, ["validate", "traction", "--material", "bone"])
     assert bad.exit_code != 0
