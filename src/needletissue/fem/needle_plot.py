@@ -25,7 +25,7 @@ def plot_deformed(result, path: Path, scale: float = 1.0) -> Path:
     grid.point_data["u"] = fe.displacement
     grid.cell_data["region"] = fe.cell_data["region"]
     # Cut at y = 0 in the reference configuration (shows the needles inside the tissue), then warp.
-    clipped = grid.clip(normal="y", origin=(0, 0, 0), invert=True, crinkle=True).warp_by_vector("u", factor=scale)
+    clipped = grid.clip(normal="y", origin=(0, 0, 0), invert=False, crinkle=True).warp_by_vector("u", factor=scale)
     pl = pv.Plotter(off_screen=True, window_size=(1400, 1000))
     pl.add_mesh(clipped, scalars="|u| (mm)", cmap="viridis", show_edges=False)
     pl.add_mesh(clipped.extract_feature_edges(), color="black", line_width=0.5, opacity=0.3)
