@@ -125,8 +125,10 @@ def run_case(size: str, solver: str, mesh_dir: Path) -> dict:
         b.assemble.vector(field=b.field)
         b.assemble.matrix(field=b.field)
     t_assemble = time.perf_counter() - t
+    cpu0 = time.process_time()
     res = solve(model, [Fixed("bottom"), SurfaceForce("needle_top", (100.0, 0.0, 0.0))], [1.0],
                 solver=solver, progress=False, results=False)[-1]
+    cpu = time.process_time() - cpu0  # all threads; less sensitive to the shared machine's load
     it = res.newton_iterations
     return {
         "size": size, "solver": solver, "tetrahedra": int(len(mesh.cells)), "nodes": int(len(mesh.points)),
@@ -135,7 +137,8 @@ def run_case(size: str, solver: str, mesh_dir: Path) -> dict:
         "assembly_s": t_assemble,
         "assembly_and_update_per_iteration_s": res.timing_s["assembly_and_update"] / it,
         "linear_solve_per_iteration_s": res.timing_s["linear_solve"] / it,
-        "newton_wall_s": res.timing_s["newton"], "mesh_s": t_mesh, "model_s": t_model,
+        "newton_wall_s": res.timing_s["newton"], "newton_cpu_s": cpu, "mesh_s": t_mesh, "model_s": t_model,
+        "load_average_1min": __import__("os").getloadavg()[0],
         "rss_after_mesh_GB": rss_mesh,
         "peak_rss_GB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
         "needle_tip_ux_mm": float(res.displacement[mesh.surface_nodes("needle_top"), 0].mean()),
@@ -165,13 +168,22 @@ def scale(sizes, solvers, out: Path, mesh_dir: Path):
             row = json.loads(p.stdout.strip().splitlines()[-1])
             rows.append(row)
             print(json.dumps(row), flush=True)
+    summarize(rows, solvers, out)
+
+
+def summarize(rows, solvers, out: Path):
+    """Fit growth exponents per solver and write the JSON (also used to combine separate runs)."""
     summary = {}
+    for r in rows:
+        if "error" not in r:
+            r["cpu_per_iteration_s"] = r["newton_cpu_s"] / r["newton_iterations"]
     for solver in solvers:
         ok = [r for r in rows if r["solver"] == solver and "error" not in r]
         if len(ok) < 2:
             continue
         s = {}
-        for key in ("linear_solve_per_iteration_s", "assembly_and_update_per_iteration_s", "peak_rss_GB"):
+        for key in ("linear_solve_per_iteration_s", "assembly_and_update_per_iteration_s", "cpu_per_iteration_s",
+                    "peak_rss_GB"):
             a, b = fit(ok, key)
             s[key] = {"exponent": b, "extrapolated_to_paper": a * PAPER_TETS**b}
         summary[solver] = s
@@ -230,3 +242,6 @@ if __name__ == "__main__":
         ap.add_argument("--mesh-dir", type=Path, default=Path("/tmp/needletissue_bench_meshes"))
         a = ap.parse_args()
         scale(a.sizes, a.solvers, a.out, a.mesh_dir)
+    elif sys.argv[1] == "combine":  # combine OUT IN1 IN2 ...: one table and fit from separate runs
+        rows = [r for f in sys.argv[3:] for r in json.loads(Path(f).read_text())["cases"]]
+        summarize(rows, SOLVERS, Path(sys.argv[2]))

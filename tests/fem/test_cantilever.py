@@ -100,3 +100,41 @@ def test_large_load_fine_mesh_within_half_percent():
     alpha = 2.0
     u, _ = cantilever(L, H, 50, 2, alpha * E * I / L**2, initial_step=0.25)
     assert u[2] / L == pytest.approx(elastica_tip(alpha)[0], rel=0.005)
+
+
+def test_round_pin_needs_curved_tetra10():
+    """A 5 mm round pin, 2 elements across: gmsh order-2 tetra10 (midside nodes on the cylinder)
+    is within 1.5 % of Timoshenko; straight midpoints (a polygonal section, smaller I) are > 20 % soft."""
+    import gmsh
+
+    D, Lp, P = 5.0, 60.0, 10.0
+
+    def pin(curved):
+        gmsh.initialize(["-nt", "1"])
+        try:
+            gmsh.option.setNumber("General.Terminal", 0)
+            v = gmsh.model.occ.addCylinder(0, 0, 0, Lp, 0, 0, D / 2)
+            gmsh.model.occ.synchronize()
+            gmsh.model.addPhysicalGroup(3, [v], name="needle")
+            for d, t in gmsh.model.getEntities(2):
+                x = gmsh.model.occ.getCenterOfMass(d, t)[0]
+                if abs(x) < 1e-6 or abs(x - Lp) < 1e-6:
+                    gmsh.model.addPhysicalGroup(2, [t], name="clamped" if abs(x) < 1e-6 else "tip")
+            gmsh.option.setNumber("Mesh.MeshSizeMax", 2.5)
+            gmsh.option.setNumber("Mesh.MeshSizeMin", 2.5)
+            gmsh.model.mesh.generate(3)
+            if curved:
+                gmsh.model.mesh.setOrder(2)
+            return TaggedMesh.from_gmsh()
+        finally:
+            gmsh.finalize()
+
+    I, A, G = np.pi * D**4 / 64, np.pi * D**2 / 4, E / (2 * (1 + NU))
+    ref = P * Lp**3 / (3 * E * I) + P * Lp / (6 * (1 + NU) / (7 + 6 * NU) * G * A)
+    tips = {}
+    for curved in (True, False):
+        model = FEModel(pin(curved), {"needle": "needle"}, order=2)
+        r = solve(model, [Fixed("clamped"), SurfaceForce("tip", (0, 0, P))], [1.0], progress=False, results=False)
+        tips[curved] = r[-1].displacement[model.mesh.surface_nodes("tip"), 2].mean()
+    assert tips[True] / ref == pytest.approx(1.0, abs=0.015)
+    assert tips[False] / ref > 1.2

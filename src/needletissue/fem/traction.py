@@ -81,23 +81,17 @@ PAPER_RMSE = {"muscle": 0.0131, "adipose": 0.0105}  # MPa, paper Sec. 3.2
 def theory_nominal_stress(material: str, stretch) -> np.ndarray:
     """Incompressible uniaxial nominal stress (MPa) of a tissue's isochoric strain energy.
 
-    Uses needletissue.materials.closed_form when present, else FElupe's ViewMaterialIncompressible
-    (lambda2 = lambda3 = lambda^-1/2, lateral stress zero) on the same energy.
+    Uses the closed forms of needletissue.materials (Material.nominal_stress, written independently
+    of FElupe) when present, else FElupe's ViewMaterialIncompressible on the same energy.
     """
     stretch = np.asarray(stretch, float)
-    try:  # the closed forms of branch `mat`, when merged
-        from needletissue.materials import closed_form  # type: ignore
-
-        fun = getattr(closed_form, "uniaxial_nominal_stress", None)
-        if fun is not None:
-            return np.asarray(fun(material, stretch), float)
-    except ImportError:
-        pass
-    import felupe as fem
-
     mat = materials.get(material)
     if mat.model == "elastic":
         raise InputError("material", f"{material} is not a hyperelastic tissue")
+    if hasattr(mat, "nominal_stress"):
+        return np.asarray(mat.nominal_stress("uniaxial", stretch), float).reshape(stretch.shape)
+    import felupe as fem
+
     out = np.zeros_like(stretch)
     nz = ~np.isclose(stretch, 1.0)
     if nz.any():
@@ -124,7 +118,7 @@ def run(config: TractionConfig, progress: bool = False) -> TractionResult:
     top = (0.0, 0.0, c.max_displacement) if c.ends == "clamped" else (None, None, c.max_displacement)
     bcs.append(PrescribedDisplacement("zmax", top))
     factors = np.linspace(0, 1, int(c.points))
-    results = solve(model, bcs, factors[1:], progress=progress, initial_step=factors[1] / 2)
+    results = solve(model, bcs, factors[1:], progress=progress)
     d = factors * c.max_displacement
     fe = np.concatenate([[0.0], [r.reaction_forces["zmax"][2] / (w * w) for r in results]])
     stretch = 1 + d / h
