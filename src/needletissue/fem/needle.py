@@ -222,7 +222,7 @@ def ritz_model(g: NeedleGeometry):
 
 def _ritz_tips(cfg: NeedleModelConfig) -> dict[float, dict[str, object]]:
     """Ritz solutions at the full force (the paper's comparison) and at the force per needle."""
-    from needletissue.ritz.solve import solve
+    from needletissue.ritz import solve
 
     model = ritz_model(cfg.geometry)
     out = {}
