@@ -77,6 +77,22 @@ def test_thickness_along_needles_is_the_walked_layers(vol, site):
         assert abs(p.total_mm - 31.82) < 3 * 5.43
 
 
+def test_thickness_agrees_with_the_img_segmentation(vol, site):
+    """Independent check: the img branch's segmentation and path walk (LPS frame, its own tissue
+    rules) find the bone where our needle enters it and about the same soft-tissue thickness."""
+    from needletissue.fem.pelvis import PelvisConfig, thickness_crosscheck
+
+    class _PM:
+        pass
+
+    pm = _PM()
+    pm.site, pm.paths = site, gp.needle_paths(vol, site)
+    for row in thickness_crosscheck(PelvisConfig(), pm):
+        assert row["bone_point_distance_mm"] < 1.5  # half a CT voxel
+        # tissue rules differ (skin/outline voxels, 'other' tissue): within two CT voxels
+        assert abs(row["total_mm"] - row["ours_total_mm"]) < 2 * vol.spacing
+
+
 def test_mesh_is_conforming_and_complete(coarse):
     m = coarse
     assert set(m.regions) >= {"hip_cortical", "hip_cancellous", "sacrum", "femur", "gluteus_maximus",
@@ -146,7 +162,7 @@ def test_coarse_solve_equilibrium_and_monotone(tmp_path):
     from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
 
     cfg = PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[50.0, 100.0],
-                       out=str(tmp_path), figures=False)
+                       out=str(tmp_path), figures=False, crosscheck_thickness=False)
     res = run_pelvis_model(cfg)
     a, b = res.results
     assert 0 < a.max_needle_deformation_mm < b.max_needle_deformation_mm

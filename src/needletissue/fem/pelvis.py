@@ -99,6 +99,7 @@ class PelvisConfig:
     out: str | None = None
     figures: bool = True
     progress: bool = False
+    crosscheck_thickness: bool = True  # CT only: thickness again with the img branch's segmentation
 
     def __post_init__(self):
         if self.source not in ("ct", "ssm"):
@@ -146,6 +147,7 @@ class PelvisResult:
     comparison: list
     timing_s: dict
     ritz: dict
+    thickness_img: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         from needletissue.runinfo import to_jsonable
@@ -206,6 +208,31 @@ def ritz_prediction(config: PelvisConfig, paths, free_length: list, load_point: 
         res = ritz.solve_forces(forces, model)
         out["per_needle"].append({"model": model.to_dict(), "tip_deflection_mm": [r.tip_deflection_mm for r in res],
                                   "max_deflection_mm": [r.max_deflection_mm for r in res]})
+    return out
+
+
+def thickness_crosscheck(config: PelvisConfig, pm) -> list:
+    """Soft-tissue thickness along each needle from the `img` branch's own segmentation and path walk
+    (needletissue.imaging.segment + geometry.thickness.thickness_along, LPS frame): an independent
+    check of geometry.pelvis.needle_paths. The path enters 10 mm outside our skin exit."""
+    from needletissue.geometry.pelvis import data_dir
+    from needletissue.geometry.thickness import thickness_along
+    from needletissue.imaging.segment import segment
+
+    d = None if config.ct else data_dir() / "pelvis_ct"
+    ct = config.ct or d / "example_ct.nii.gz"
+    labels = config.labels or d / "example_seg_fast_force_split.nii.gz"
+    seg = segment(ct, labels)
+    ras_to_lps = np.array([-1.0, -1.0, 1.0])
+    out = []
+    for i, p in enumerate(pm.paths):
+        r = thickness_along(seg, (p.skin_exit - 10.0 * pm.site.direction) * ras_to_lps,
+                            pm.site.direction * ras_to_lps)
+        bone = None if r.bone_point is None else np.asarray(r.bone_point) * ras_to_lps
+        out.append({"needle": f"needle_{i + 1}", "total_mm": r.soft_tissue_thickness_mm,
+                    "by_tissue_mm": r.thickness_by_tissue,
+                    "bone_point_distance_mm": None if bone is None else float(np.linalg.norm(bone - p.entry)),
+                    "ours_total_mm": p.total_mm})
     return out
 
 
@@ -300,6 +327,8 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         timing_s={"mesh": t_mesh, "model": t_model, "solve": t_solve, "cpu_s": time.process_time() - c0},
         ritz=ritz,
     )
+    if config.source == "ct" and config.crosscheck_thickness:
+        res.thickness_img = thickness_crosscheck(config, pm)
     res.comparison = comparison_table(res)
     if out_dir is not None:
         from needletissue.runinfo import write_json, write_run_files
@@ -314,6 +343,10 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
             from needletissue.fem.pelvis_report import figures
 
             figures(res, fe[-1], qm, out_dir)
+        from needletissue.fem.pelvis_report import comparison_markdown
+        from needletissue.runinfo import write_atomic
+
+        write_atomic(out_dir / "pelvis_comparison.md", comparison_markdown(res))
         write_run_files(out_dir, asdict(config), res.to_dict())
         write_json(out_dir / "pelvis_results.json", res.to_dict())
     return res

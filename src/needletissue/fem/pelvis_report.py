@@ -40,13 +40,15 @@ def _render(res, fe_last, mesh, path):
     f = np.asarray(res.force_vector_unit, float)
     normal = np.cross(d, f)
     normal /= np.linalg.norm(normal)
-    section = grid.clip(normal=normal, origin=centre, crinkle=True)
+    on_needle = axes[0].mean(axis=0)  # plane through needle_1's axis: its cut face is visible
+    section = grid.clip(normal=normal, origin=on_needle, crinkle=True)  # (plain clip segfaulted in VTK 9.x here)
     p = pv.Plotter(off_screen=True, window_size=(1400, 1000))
     p.add_mesh(section, scalars="|u| mm", cmap="viridis", show_edges=False,
                scalar_bar_args={"title": f"|u| (mm) at {res.results[-1].force_N:.0f} N"})
     p.add_mesh(grid.extract_feature_edges(), color="grey", opacity=0.15)
-    p.camera_position = [tuple(centre - 400 * normal), tuple(centre), (0, 0, 1)]
-    p.add_text("section through the needles (plane of needle axis and force)", font_size=10)
+    # clip() keeps the half behind the plane: look at the cut face from the front
+    p.camera_position = [tuple(on_needle + 220 * normal), tuple(on_needle), (0, 0, 1)]
+    p.add_text("section through needle_1 (plane of the needle axis and the force)", font_size=10)
     p.screenshot(str(path))
     p.close()
     return path
@@ -91,3 +93,22 @@ def _plots(res, out_dir):
     fig.savefig(f2, dpi=130)
     plt.close(fig)
     return [f1, f2]
+
+
+def comparison_markdown(res) -> str:
+    """The comparison table (ours beside the paper's) as Markdown, written next to the results."""
+
+    def fmt(v):
+        if isinstance(v, float):
+            return f"{v:.3f}"
+        if isinstance(v, (list, tuple)):
+            return " / ".join(fmt(x) for x in v)
+        return str(v)
+
+    lines = ["| quantity | this model | paper | difference |", "|---|---|---|---|"]
+    for row in res.comparison:
+        lines.append(f"| {row['quantity']} | {fmt(row['ours'])} | {fmt(row['paper'])} | {fmt(row['difference'])} |")
+    last = res.results[-1]
+    lines += ["", f"Max deformation per region at {last.force_N:.0f} N (mm): "
+              + ", ".join(f"{k} {v:.3f}" for k, v in sorted(last.max_deformation_mm.items(), key=lambda kv: -kv[1]))]
+    return "\n".join(lines) + "\n"
