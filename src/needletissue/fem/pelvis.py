@@ -199,15 +199,18 @@ def ritz_prediction(config: PelvisConfig, paths, free_length: list, load_point: 
     mid-height (where the resultant of the uniform clamp load acts)."""
     from needletissue import ritz
 
-    out = {"model": "two-layer Rayleigh-Ritz, cubic trial function (paper Eq. 13)", "per_needle": []}
+    out = {"model": "two-layer Rayleigh-Ritz, cubic trial function (paper Eq. 13); the whole force F on "
+                    "each needle as in the paper's comparison, and F/2 for reference", "per_needle": []}
     for p, l, z3 in zip(paths, free_length, load_point):
         layers = [ritz.Layer(n, t, k) for n, t, k in (("muscle", p.muscle_mm, 0.048), ("adipose", p.adipose_mm, 0.023))
                   if t > 0]
         model = ritz.RitzModel(diameter_mm=config.needle_diameter, free_length_mm=l, layers=tuple(layers),
                                load_point_mm=z3)
         res = ritz.solve_forces(forces, model)
+        half = ritz.solve_forces([f / 2 for f in forces], model)  # if the two needles share F equally
         out["per_needle"].append({"model": model.to_dict(), "tip_deflection_mm": [r.tip_deflection_mm for r in res],
-                                  "max_deflection_mm": [r.max_deflection_mm for r in res]})
+                                  "max_deflection_mm": [r.max_deflection_mm for r in res],
+                                  "max_deflection_half_force_mm": [r.max_deflection_mm for r in half]})
     return out
 
 
