@@ -135,12 +135,19 @@ def test_quadratic_needles_have_the_cylinder_volume(coarse):
         assert abs(curv - exact) < 0.02 * exact
 
 
-def test_clamp_load_face_is_flat_and_outside(coarse):
+def test_gripper_is_the_two_clamp_side_faces(coarse):
+    """Two flat faces, width apart, each of area bar length x clamp height (triangles tile them)."""
     m = coarse
-    pts = m.points[np.unique(m.surfaces["clamp_load"])]
-    e3 = m.clamp_frame[2]
-    h = pts @ e3
-    assert np.ptp(h) < 1e-6 * max(1.0, abs(h).max())
+    tri = m.surfaces["gripper"]
+    e2 = m.clamp_frame[1]
+    s = m.points[tri].mean(axis=1) @ e2
+    sides = np.unique(np.round(s, 6))
+    assert len(sides) == 2 and abs(np.ptp(sides) - m.site.clamp_size[1]) < 1e-6
+    a = 0.5 * np.linalg.norm(np.cross(m.points[tri[:, 1]] - m.points[tri[:, 0]],
+                                      m.points[tri[:, 2]] - m.points[tri[:, 0]]), axis=1)
+    span = abs((m.site.entries[1] - m.site.entries[0]) @ m.clamp_frame[0])
+    exact = 2 * (span + 2 * m.site.clamp_overhang) * m.site.clamp_size[0]
+    assert abs(a.sum() - exact) < 1e-6 * exact
 
 
 def test_bad_inputs_name_the_field():

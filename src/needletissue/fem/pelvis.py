@@ -10,7 +10,8 @@ the sacroiliac joint"):
                     within 1.5 voxels of the sacrum) is fixed; `"bonded"`: only the shared nodes of
                     touching hip/sacrum elements tie the bones (gaps stay open)
   midline           u_x = 0 on the medial crop plane (mirror symmetry of the other hemipelvis)
-  clamp_load        the reduction force, spread uniformly over the clamp's outer face (the gripper)
+  gripper           the reduction force, spread uniformly over the clamp bar's two side faces (the robot's
+                    jaws; same convention as the `needle` branch), resultant at the clamp's mid-height
 Everything else is bonded (one conforming mesh: the paper's frictional interfaces are the `contact`
 branch's subject).
 """
@@ -253,7 +254,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
     t_mesh = time.perf_counter() - t0
     tm = TaggedMesh(pm.points, pm.cells, pm.regions, pm.surfaces)
     tm.check(regions=["needle_1", "needle_2", "clamp", "hip_cortical"],
-             surfaces=["femur_fixed", "sacrum_fixed", "sacroiliac_joint", "clamp_load", "midline"])
+             surfaces=["femur_fixed", "sacrum_fixed", "sacroiliac_joint", "gripper", "midline"])
     if config.order == 2:
         from needletissue.geometry.pelvis import curve_needles
 
@@ -271,7 +272,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
     bcs += [Fixed("femur_fixed"), Fixed("sacrum_fixed")]
     if config.si_joint == "fixed":
         bcs.append(Fixed("sacroiliac_joint"))
-    bcs.append(SurfaceForce("clamp_load", total=tuple(fmax * fdir)))
+    bcs.append(SurfaceForce("gripper", total=tuple(fmax * fdir)))
     factors = [f / fmax for f in config.forces]
     fe = solve(model, bcs, load_factors=factors, solver=config.solver, progress=config.progress)
     t_solve = time.perf_counter() - t0 - t_mesh - t_model
@@ -323,7 +324,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         force_vector_unit=fdir,
         boundary_conditions={"femur_fixed": "fixed", "sacrum_fixed": "fixed",
                              "sacroiliac_joint": config.si_joint, "midline": "u_x = 0 (symmetry)",
-                             "clamp_load": "uniform surface force (dead load)",
+                             "gripper": "uniform surface force on the clamp's side faces (dead load)",
                              "interfaces": "bonded (one conforming mesh)"},
         notes=pm.notes,
         comparison=[],
