@@ -288,12 +288,12 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
 
     out_dir = Path(config.out) if config.out else None
     loads = []
-    clamp_nodes = np.unique(qm.cells[qm.regions["clamp"]])
+    gripper_nodes = np.unique(qm.surfaces["gripper"])  # |mean u| over the gripper, as `fe needle`
     for f, r, rt in zip(config.forces, fe, ritz_tip):
         by = {k: float(v) for k, v in r.max_displacement_by_region.items()}
         needles = {k: by[k] for k in ("needle_1", "needle_2")}
         nmax = max(needles.values())
-        clamp_u = float(np.linalg.norm(r.displacement[clamp_nodes].mean(axis=0)))
+        clamp_u = float(np.linalg.norm(r.displacement[gripper_nodes].mean(axis=0)))
         vtu = None
         if out_dir is not None:
             vtu = str(r.write_vtu(out_dir / f"pelvis_{int(round(f))}N.vtu"))
