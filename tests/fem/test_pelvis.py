@@ -190,3 +190,19 @@ def test_cli_rejects_bad_force():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ))
     assert r.returncode == 2, r.stderr
     assert "force" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_ssm_source_layers_and_hip_joint():
+    """Second source: the mean SSM bones with offset layers. The femoral-head proxy sits in the
+    acetabulum, lateral of the midline by half a hip-joint-centre separation (adults: ~150-190 mm
+    between the joint centres); along an oblique needle the offset layers are at least as thick as
+    along the normal (22 mm muscle + 10 mm adipose, minus one voxel per interface)."""
+    v = gp.ssm_label_volume(spacing=2.0)
+    head = v.world(np.argwhere(v.labels == 3))
+    assert len(head) > 0
+    half = head[:, 0].mean() - v.origin[0]  # the volume starts at the sacrum's mid-plane
+    assert 70.0 < half < 100.0, half
+    site = gp.standard_site(v, "iliac_crest")
+    for p in gp.needle_paths(v, site):
+        assert p.total_mm >= 32.0 - 2 * v.spacing
+        assert p.adipose_mm >= 10.0 - 2 * v.spacing
