@@ -149,6 +149,7 @@ class PelvisResult:
     timing_s: dict
     ritz: dict
     thickness_img: list = field(default_factory=list)
+    figures: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         from needletissue.runinfo import to_jsonable
@@ -343,16 +344,15 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         out_dir.mkdir(parents=True, exist_ok=True)
         meshio.write(out_dir / "pelvis_mesh.vtu", pm_m)
         res.wall_time_s = time.perf_counter() - t0
-        if config.figures:
-            from needletissue.fem.pelvis_report import figures
-
-            figures(res, fe[-1], qm, out_dir)
-        from needletissue.fem.pelvis_report import comparison_markdown
+        from needletissue.fem.pelvis_report import comparison_markdown, render_in_subprocess
         from needletissue.runinfo import write_atomic
 
         write_atomic(out_dir / "pelvis_comparison.md", comparison_markdown(res))
         write_run_files(out_dir, asdict(config), res.to_dict())
         write_json(out_dir / "pelvis_results.json", res.to_dict())
+        if config.figures:  # after the results are safe: a VTK crash must not lose them
+            res.figures = render_in_subprocess(out_dir)
+            write_json(out_dir / "pelvis_results.json", res.to_dict())
     return res
 
 

@@ -112,3 +112,41 @@ def comparison_markdown(res) -> str:
     lines += ["", f"Max deformation per region at {last.force_N:.0f} N (mm): "
               + ", ".join(f"{k} {v:.3f}" for k, v in sorted(last.max_deformation_mm.items(), key=lambda kv: -kv[1]))]
     return "\n".join(lines) + "\n"
+
+
+def render_in_subprocess(out_dir) -> dict:
+    """Render the figures from the written VTU/JSON in a child process (VTK off-screen rendering has
+    crashed with a segfault inside long runs on this machine). Returns {"files": [...]} or {"error"}."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from needletissue.fem.pelvis_report import figures_from_files; "
+            "print('\\n'.join(figures_from_files(sys.argv[1])))")
+    env = dict(os.environ, PYVISTA_OFF_SCREEN="true", MPLBACKEND="Agg")
+    r = subprocess.run([sys.executable, "-c", code, str(out_dir)], capture_output=True, text=True, env=env)
+    if r.returncode != 0:
+        return {"error": f"figure process exited with {r.returncode}: {r.stderr.strip()[-300:]}"}
+    return {"files": [ln for ln in r.stdout.splitlines() if ln.strip()]}
+
+
+def figures_from_files(out_dir) -> list[str]:
+    """Figures from pelvis_results.json and the largest force's VTU in out_dir."""
+    import json
+    from types import SimpleNamespace as NS
+
+    import meshio
+
+    out_dir = Path(out_dir)
+    d = json.loads((out_dir / "pelvis_results.json").read_text())
+    last = d["results"][-1]
+    m = meshio.read(last["vtu"])
+    cells = m.cells[0].data
+    reg = np.asarray(m.cell_data["region"][0])
+    mesh = NS(points=m.points, cells=cells, regions={i: np.nonzero(reg == i)[0] for i in np.unique(reg)})
+    res = NS(site=d["site"], force_vector_unit=d["force_vector_unit"],
+             results=[NS(force_N=r["force_N"], max_needle_deformation_mm=r["max_needle_deformation_mm"],
+                         ritz_tip_deflection_mm=r["ritz_tip_deflection_mm"],
+                         max_deformation_mm=r["max_deformation_mm"]) for r in d["results"]])
+    files = [_render(res, NS(displacement=m.point_data["displacement"]), mesh, out_dir / "pelvis_deformation.png")]
+    files += _plots(res, out_dir)
+    return [str(f) for f in files]
