@@ -1,11 +1,13 @@
 """The published FE-core API on a small mesh: BCs by surface name, results, VTU, errors."""
 
+import json
+
 import meshio
 import numpy as np
 import pytest
 
 from needletissue.errors import InputError
-from needletissue.fem import FEModel, Fixed, PrescribedDisplacement, SurfaceForce, TaggedMesh, solve
+from needletissue.fem import FEModel, Fixed, PrescribedDisplacement, SurfaceForce, TaggedMesh, solve, write_results
 
 
 @pytest.fixture(scope="module")
@@ -31,6 +33,10 @@ def test_force_equilibrium_and_outputs(two_layers, tmp_path):
     m = meshio.read(path)
     assert set(m.cell_data) >= {"von_mises_MPa", "principal_stretches", "region"}
     np.testing.assert_allclose(m.point_data["displacement"], res[-1].displacement)
+    payload = write_results(tmp_path / "run", res, {"load_N": 1.0})
+    saved = json.loads((tmp_path / "run" / "results.json").read_text())
+    assert saved == json.loads(json.dumps(payload)) and payload["vtu"] == ["fe_0.vtu", "fe_1.vtu"]
+    assert (tmp_path / "run" / "versions.json").exists() and (tmp_path / "run" / "config.toml").exists()
 
 
 def test_prescribed_displacement_is_reproduced(two_layers):
@@ -53,3 +59,12 @@ def test_bad_input_names_the_field(two_layers):
         solve(model, [Fixed("zmin")], [1.0, 0.5], progress=False)
     with pytest.raises(InputError, match="solver"):
         solve(model, [Fixed("zmin")], solver="mumps", progress=False)
+
+
+def test_progress_bar_goes_to_stderr(two_layers, capsys):
+    """The Rich bar reports on stderr (stdout stays clean for --json) with Newton residuals."""
+    model = FEModel(two_layers, {"muscle": "muscle", "adipose": "adipose"})
+    solve(model, [Fixed("zmin"), SurfaceForce("zmax", (0.0, 0.0, 0.1))], [1.0], progress=True)
+    out = capsys.readouterr()
+    assert out.out == ""
+    assert "Newton" in out.err and "|r|" in out.err

@@ -29,7 +29,8 @@ class Fixed:
 @dataclass(frozen=True)
 class PrescribedDisplacement:
     """Displacement (ux, uy, uz) in mm of every node of a surface, scaled by the load factor.
-    A component given as None is left free."""
+    A component given as None is left free. `value` may also be a callable X (k,3) -> u (k,3) mm
+    evaluated at the surface's nodes (sorted node ids), e.g. an affine field for a patch test."""
 
     surface: str
     value: tuple = (0.0, 0.0, 0.0)

@@ -100,3 +100,18 @@ def principal_stretches(F: np.ndarray) -> np.ndarray:
     """Ascending principal stretches of deformation gradients with shape (..., 3, 3)."""
     C = np.einsum("...ki,...kj->...ij", F, F)
     return np.sqrt(np.clip(np.linalg.eigvalsh(C), 0.0, None))
+
+
+def write_results(out_dir, results: list[FEResult], config=None, vtu: bool = True, prefix: str = "fe") -> dict:
+    """Write one VTU per load factor (`{prefix}_<k>.vtu`), and config.toml + versions.json +
+    results.json (`{"results": [FEResult.to_dict(), ...], "vtu": [...]}`) into out_dir. Atomic."""
+    from needletissue.runinfo import write_run_files
+
+    out_dir = Path(out_dir)
+    files = []
+    if vtu:
+        for k, r in enumerate(results):
+            files.append(r.write_vtu(out_dir / f"{prefix}_{k}.vtu").name)
+    payload = {"results": [r.to_dict() for r in results], "vtu": files}
+    write_run_files(out_dir, config if config is not None else {}, payload)
+    return payload

@@ -28,6 +28,13 @@ class _Loads:
         for i, bc in enumerate(bcs):
             if isinstance(bc, Fixed):
                 comps = [(c, 0.0) for c in bc.components]
+            elif isinstance(bc, PrescribedDisplacement) and callable(bc.value):
+                nodes = mesh.surface_nodes(bc.surface)
+                vals = np.asarray(bc.value(mesh.points[nodes]), float)
+                if vals.shape != (len(nodes), 3) or not np.isfinite(vals).all():
+                    raise InputError(f"PrescribedDisplacement({bc.surface!r}).value",
+                                     f"the callable must return finite (k, 3) mm for the k={len(nodes)} surface nodes")
+                comps = list(enumerate(vals.T))
             elif isinstance(bc, PrescribedDisplacement):
                 if len(bc.value) != 3:
                     raise InputError(f"PrescribedDisplacement({bc.surface!r}).value", "needs 3 components (mm or None)")
@@ -107,7 +114,7 @@ class _Progress:
 
 def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=(), progress: bool = True,
           initial_step: float | None = None, min_step: float = 1e-3, max_step: float | None = None,
-          tol: float = 1e-8, maxiter: int = 12, results: bool = True) -> list[FEResult]:
+          tol: float = 1e-8, maxiter: int = 12, results: bool = True, predictor: bool = True) -> list[FEResult]:
     """Solve the model quasi-statically, one FEResult per requested load factor.
 
     bcs          : Fixed / PrescribedDisplacement / SurfaceForce; values and forces scale with the
@@ -122,8 +129,10 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     tol          : Newton tolerance on |residual of free dofs| / |reactions| (FElupe's norm).
     maxiter      : Newton iterations per increment before a cut-back.
     results      : False skips the stress/stretch evaluation (e.g. in benchmarks).
+    predictor    : start each increment from the linear extrapolation of the last converged one
+                   (fewer Newton iterations on smooth load paths; off after a cut-back).
 
-    Increments grow by 1.5x after an increment that converged in <= 5 iterations.
+    The allowed increment grows 1.5x after an increment that converged in <= 5 iterations.
     """
     import felupe as fem
 
@@ -155,23 +164,35 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
 
     plugin = _Report()
     lam, nsteps, nit, ncut = 0.0, 0, 0, 0
+    last_du, last_dl = None, 0.0  # last converged increment, for the predictor
     newton_s = 0.0
     norms: list[list[float]] = []
     out = []
-    with bar if progress else nullcontext():
+    with bar if progress else nullcontext(), linsolve.single_threaded_openblas():
         for target in lams:
             while lam < target * (1 - 1e-12):
-                dl = min(step, target - lam, max_step)
+                # equal sub-steps no larger than the allowed increment (no tiny remainders)
+                rest = target - lam
+                dl = rest / np.ceil(rest / min(step, max_step) - 1e-9)
                 saved = [f.values.copy() for f in field.fields]
-                checkpoints = [b.checkpoint() if hasattr(b, "checkpoint") else None for b in bodies]
+                if predictor and last_du is not None:
+                    for f, d in zip(field.fields, last_du):
+                        f.values = f.values + (dl / last_dl) * d
+                stateful = [*bodies, *items]  # e.g. a frictional contact item's history
+                checkpoints = [b.checkpoint() if hasattr(b, "checkpoint") else None for b in stateful]
                 ext0 = loads.apply(model, lam + dl)
                 ok, res, why = False, None, ""
                 ts = time.perf_counter()
                 try:
-                    res = fem.newtonraphson(
-                        x0=field, items=all_items, dof1=loads.dof1, dof0=loads.dof0, ext0=ext0,
-                        solver=linear, tol=tol, maxiter=maxiter, verbose=0, plugins=[plugin])
+                    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):  # failures are handled
+                        res = fem.newtonraphson(
+                            x0=field, items=all_items, dof1=loads.dof1, dof0=loads.dof0, ext0=ext0,
+                            solver=linear, tol=tol, maxiter=maxiter, verbose=0, plugins=[plugin])
                     ok = bool(res.success) and np.all(np.isfinite(res.fun))
+                    if ok:  # the energies are defined for det F < 0 too: reject inverted elements
+                        jmin = min(_min_det_f(b) for b in bodies)
+                        if not jmin > 0:
+                            ok, why = False, f"inverted elements (min det F = {jmin:.3g})"
                 except InputError:
                     raise
                 except (ValueError, ArithmeticError, RuntimeError, np.linalg.LinAlgError) as exc:
@@ -179,12 +200,15 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 newton_s += time.perf_counter() - ts
                 if ok:
                     field.link(res.x)
+                    last_fun = res.fun  # residual at the converged state: reactions, no re-assembly
+                    last_du = [f.values - v for f, v in zip(field.fields, saved)]
+                    last_dl = dl
                     lam += dl
                     nsteps += 1
                     nit += int(res.iterations)
                     norms.append([float(x) for x in res.fnorms])
-                    if res.iterations <= 5:
-                        step = min(1.5 * dl, max_step)
+                    if res.iterations <= 5:  # grow the allowed increment (dl may be a split of it)
+                        step = min(1.5 * max(step, dl), max_step)
                     else:
                         step = dl
                     bar.update(lam=lam)
@@ -192,10 +216,11 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 # failed: restore the last converged state and halve the increment
                 for f, v in zip(field.fields, saved):
                     f.values = v
-                for b, c in zip(bodies, checkpoints):
+                for b, c in zip(stateful, checkpoints):
                     if c is not None:
                         b.restore(c)
                 ncut += 1
+                last_du = None  # the path turned: no extrapolation from a failed direction
                 step = dl / 2
                 bar.update(text=f"cut-back to dλ={step:.3g} at λ={lam:.4g} ({why or 'no convergence in %d iterations' % maxiter})")
                 if step < min_step:
@@ -205,9 +230,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                         f"{dl:.3g} failed and halving it would go below min_step={min_step:g} "
                         f"({nsteps} steps, {nit} Newton iterations, {ncut} cut-backs; last: {why or 'max iterations'})")
             if results:
-                # residual at the converged state for reactions
-                fvec = fem.tools._newton.fun_items(all_items, field)
-                out.append(_result(model, loads, fvec, target, nsteps, nit, ncut, time.perf_counter() - t0,
+                out.append(_result(model, loads, last_fun, target, nsteps, nit, ncut, time.perf_counter() - t0,
                                    linear, newton_s, norms))
             else:
                 out.append(FEResult(target, field[0].values.copy(), {}, {}, nsteps, nit, time.perf_counter() - t0,
@@ -215,6 +238,12 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                                     {"newton": newton_s, "linear_solve": linear.seconds,
                                      "assembly_and_update": newton_s - linear.seconds}, norms))
     return out
+
+
+def _min_det_f(body) -> float:
+    """Smallest det F over the quadrature points of a body's last evaluation (the converged state)."""
+    F = body.results.kinematics[0]
+    return float(np.min(np.linalg.det(np.moveaxis(F, (0, 1), (-2, -1)))))
 
 
 def _result(model, loads, fvec, lam, nsteps, nit, ncut, wall, linear, newton_s, norms) -> FEResult:
