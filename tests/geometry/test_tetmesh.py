@@ -134,3 +134,13 @@ def test_bone_surface_split_by_bone(boxes_mesh):
     assert area(a) == pytest.approx(64.0 + 4 * 32.0, rel=1e-9)
     assert area(b) == pytest.approx(area(a), rel=1e-9)
     seg.bones = None
+
+
+def test_bone_box_crop(boxes_mesh):
+    seg, _ = boxes_mesh
+    box = seg.bone_box(margin_mm=2.0)  # bone cube: voxel centres 6..9 -> x = 10 - 2*[6, 9]
+    assert box[0] == pytest.approx(10 - 18 - 2.0) and box[1] == pytest.approx(10 - 12 + 2.0)
+    m = tet_mesh(seg, size=2.0, crop=box)
+    # voxels 5..10 kept: bone cube + one muscle layer
+    assert set(m.regions) == {"cortical_bone", "gluteus_maximus"}
+    assert m.quality().volume_mm3_by_region["gluteus_maximus"] == pytest.approx((6 ** 3 - 4 ** 3) * 8.0)

@@ -63,7 +63,8 @@ def register(app: typer.Typer, groups) -> None:
                                    "that of a regular tetrahedron of this edge (paper: 3 mm)."),
         regions: Optional[str] = typer.Option(None, help="Comma-separated tissues to mesh (default all "
                                               "but other_body)."),
-        crop: Optional[str] = typer.Option(None, help="Box xmin,xmax,ymin,ymax,zmin,zmax in LPS mm."),
+        crop: Optional[str] = typer.Option(None, help="Box xmin,xmax,ymin,ymax,zmin,zmax in LPS mm, or "
+                                           "'pelvis' (sacrum and hip bones + 30 mm)."),
         surfaces_out: bool = typer.Option(True, "--surfaces/--no-surfaces",
                                           help="Also write smoothed per-tissue surfaces (STL + VTP)."),
     ):
@@ -77,8 +78,12 @@ def register(app: typer.Typer, groups) -> None:
         from needletissue.runinfo import write_json, write_run_files
 
         seg = Segmentation.load(directory)
-        cfg = MeshConfig(size=size, regions=regions.split(",") if regions else None,
-                         crop=tuple(_floats("crop", crop, 6)) if crop else None).validate()
+        box = None
+        if crop == "pelvis":
+            box = seg.bone_box(30.0)
+        elif crop:
+            box = tuple(_floats("crop", crop, 6))
+        cfg = MeshConfig(size=size, regions=regions.split(",") if regions else None, crop=box).validate()
         t0 = time.perf_counter()
         results = {}
         if surfaces_out:

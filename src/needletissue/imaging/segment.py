@@ -61,7 +61,7 @@ class SegmentationConfig:
     split_spacing: float = 0.75       # mm; fine grid for the cortical split when voxels > thickness
     adipose_hu: tuple[float, float] = (-190.0, -30.0)
     soft_tissue_hu: tuple[float, float] = (-29.0, 150.0)
-    bone_hu: float = 200.0            # rule-based bone (no label map)
+    bone_hu: float = 130.0            # rule-based bone (no label map); see docs/imaging.md
     body_hu: float = -500.0           # body mask threshold
     split_sides: bool = True          # keep gluteus_maximus_left/right etc.
     bone_ids: tuple[int, ...] = tuple(TS_BONES)
@@ -119,6 +119,29 @@ class Segmentation:
             tmp.replace(out_dir / "bones.nii.gz")
             paths["bones"] = out_dir / "bones.nii.gz"
         return paths
+
+    def bone_box(self, margin_mm: float = 30.0, bones=("sacrum", "hip_left", "hip_right")):
+        """(xmin, xmax, ymin, ymax, zmin, zmax) LPS mm around the given bones (bones.nii.gz) or, without
+        it, around all bone, widened by `margin_mm`: a crop box for a pelvic model."""
+        import SimpleITK as sitk
+
+        check_number("margin_mm", margin_mm, ge=0)
+        if self.bones is not None:
+            arr = sitk.GetArrayViewFromImage(self.bones)
+            mask = np.isin(arr, [BONE_IDS[b] for b in bones])
+        else:
+            arr = sitk.GetArrayViewFromImage(self.labels)
+            mask = np.isin(arr, [self.tissues[b] for b in ("cortical_bone", "cancellous_bone")
+                                 if b in self.tissues])
+        kji = np.argwhere(mask)
+        if len(kji) == 0:
+            raise InputError("crop", "no bone voxel to put a box around")
+        corners = np.array([[i, j, k] for i in (kji[:, 2].min(), kji[:, 2].max())
+                            for j in (kji[:, 1].min(), kji[:, 1].max())
+                            for k in (kji[:, 0].min(), kji[:, 0].max())], float)
+        pts = np.array([self.labels.TransformContinuousIndexToPhysicalPoint(c.tolist()) for c in corners])
+        lo, hi = pts.min(0) - margin_mm, pts.max(0) + margin_mm
+        return tuple(float(v) for v in (lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]))
 
     @classmethod
     def load(cls, directory: str | Path) -> "Segmentation":
@@ -183,7 +206,7 @@ def split_bone(bone: np.ndarray, spacing, thickness: float, fine_spacing: float)
     k = np.maximum(1, np.ceil(spacing / fine_spacing - 1e-9).astype(int))
     if np.all(k == 1):
         depth = ndi.distance_transform_edt(b, sampling=spacing) - 0.5 * spacing.min()
-        cort = b & (depth < thickness)
+        cort = b & (depth <= thickness)
         frac_cort = float(cort.sum() / max(b.sum(), 1))
         info = {"fine_factor": [1, 1, 1], "fine_cortical_fraction": frac_cort}
     else:
@@ -191,7 +214,7 @@ def split_bone(bone: np.ndarray, spacing, thickness: float, fine_spacing: float)
         fine = ndi.zoom(smooth, k, order=1, grid_mode=True, mode="grid-constant") >= 0.5
         fsp = spacing / k
         depth = ndi.distance_transform_edt(fine, sampling=fsp) - 0.5 * fsp.min()
-        fcort = fine & (depth < thickness)
+        fcort = fine & (depth <= thickness)
         shp = (b.shape[0], k[0], b.shape[1], k[1], b.shape[2], k[2])
         nb = fine.reshape(shp).sum(axis=(1, 3, 5))
         nc = fcort.reshape(shp).sum(axis=(1, 3, 5))
@@ -252,6 +275,7 @@ def segment_arrays(hu: np.ndarray, spacing_zyx, ts_labels: np.ndarray | None,
     else:
         bone = body & (hu >= cfg.bone_hu)
         bone = _drop_small(bone, int(np.ceil(1000.0 / vox)))
+        bone = ndi.binary_closing(bone) & body  # bridges gaps in thin cortex before filling
         for k in range(bone.shape[0]):
             bone[k] = ndi.binary_fill_holes(bone[k])  # marrow inside the cortex
         named = np.zeros_like(bone)
