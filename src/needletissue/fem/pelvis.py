@@ -222,12 +222,14 @@ def thickness_crosscheck(config: PelvisConfig, pm) -> list:
     check of geometry.pelvis.needle_paths. The path enters 10 mm outside our skin exit."""
     from needletissue.geometry.pelvis import data_dir
     from needletissue.geometry.thickness import thickness_along
-    from needletissue.imaging.segment import segment
+    from needletissue.imaging.segment import SegmentationConfig, segment
 
     d = None if config.ct else data_dir() / "pelvis_ct"
     ct = config.ct or d / "example_ct.nii.gz"
     labels = config.labels or d / "example_seg_fast_force_split.nii.gz"
-    seg = segment(ct, labels)
+    # split on the CT grid itself: the thickness needs bone vs soft tissue only, and the 0.75 mm split
+    # grid took ~4 GB more memory
+    seg = segment(ct, labels, SegmentationConfig(split_spacing=3.0))
     ras_to_lps = np.array([-1.0, -1.0, 1.0])
     out = []
     for i, p in enumerate(pm.paths):
