@@ -77,6 +77,22 @@ def test_thickness_along_needles_is_the_walked_layers(vol, site):
         assert abs(p.total_mm - 31.82) < 3 * 5.43
 
 
+def test_thickness_agrees_with_the_img_segmentation(vol, site):
+    """Independent check: the img branch's segmentation and path walk (LPS frame, its own tissue
+    rules) find the bone where our needle enters it and about the same soft-tissue thickness."""
+    from needletissue.fem.pelvis import PelvisConfig, thickness_crosscheck
+
+    class _PM:
+        pass
+
+    pm = _PM()
+    pm.site, pm.paths = site, gp.needle_paths(vol, site)
+    for row in thickness_crosscheck(PelvisConfig(), pm):
+        assert row["bone_point_distance_mm"] < 1.5  # half a CT voxel
+        # tissue rules differ (skin/outline voxels, 'other' tissue): within two CT voxels
+        assert abs(row["total_mm"] - row["ours_total_mm"]) < 2 * vol.spacing
+
+
 def test_mesh_is_conforming_and_complete(coarse):
     m = coarse
     assert set(m.regions) >= {"hip_cortical", "hip_cancellous", "sacrum", "femur", "gluteus_maximus",
@@ -119,12 +135,19 @@ def test_quadratic_needles_have_the_cylinder_volume(coarse):
         assert abs(curv - exact) < 0.02 * exact
 
 
-def test_clamp_load_face_is_flat_and_outside(coarse):
+def test_gripper_is_the_two_clamp_side_faces(coarse):
+    """Two flat faces, width apart, each of area bar length x clamp height (triangles tile them)."""
     m = coarse
-    pts = m.points[np.unique(m.surfaces["clamp_load"])]
-    e3 = m.clamp_frame[2]
-    h = pts @ e3
-    assert np.ptp(h) < 1e-6 * max(1.0, abs(h).max())
+    tri = m.surfaces["gripper"]
+    e2 = m.clamp_frame[1]
+    s = m.points[tri].mean(axis=1) @ e2
+    sides = np.unique(np.round(s, 6))
+    assert len(sides) == 2 and abs(np.ptp(sides) - m.site.clamp_size[1]) < 1e-6
+    a = 0.5 * np.linalg.norm(np.cross(m.points[tri[:, 1]] - m.points[tri[:, 0]],
+                                      m.points[tri[:, 2]] - m.points[tri[:, 0]]), axis=1)
+    span = abs((m.site.entries[1] - m.site.entries[0]) @ m.clamp_frame[0])
+    exact = 2 * (span + 2 * m.site.clamp_overhang) * m.site.clamp_size[0]
+    assert abs(a.sum() - exact) < 1e-6 * exact
 
 
 def test_bad_inputs_name_the_field():
@@ -146,7 +169,7 @@ def test_coarse_solve_equilibrium_and_monotone(tmp_path):
     from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
 
     cfg = PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[50.0, 100.0],
-                       out=str(tmp_path), figures=False)
+                       out=str(tmp_path), figures=False, crosscheck_thickness=False)
     res = run_pelvis_model(cfg)
     a, b = res.results
     assert 0 < a.max_needle_deformation_mm < b.max_needle_deformation_mm
@@ -167,3 +190,19 @@ def test_cli_rejects_bad_force():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ))
     assert r.returncode == 2, r.stderr
     assert "force" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_ssm_source_layers_and_hip_joint():
+    """Second source: the mean SSM bones with offset layers. The femoral-head proxy sits in the
+    acetabulum, lateral of the midline by half a hip-joint-centre separation (adults: ~150-190 mm
+    between the joint centres); along an oblique needle the offset layers are at least as thick as
+    along the normal (22 mm muscle + 10 mm adipose, minus one voxel per interface)."""
+    v = gp.ssm_label_volume(spacing=2.0)
+    head = v.world(np.argwhere(v.labels == 3))
+    assert len(head) > 0
+    half = head[:, 0].mean() - v.origin[0]  # the volume starts at the sacrum's mid-plane
+    assert 70.0 < half < 100.0, half
+    site = gp.standard_site(v, "iliac_crest")
+    for p in gp.needle_paths(v, site):
+        assert p.total_mm >= 32.0 - 2 * v.spacing
+        assert p.adipose_mm >= 10.0 - 2 * v.spacing

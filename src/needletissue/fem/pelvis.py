@@ -10,7 +10,8 @@ the sacroiliac joint"):
                     within 1.5 voxels of the sacrum) is fixed; `"bonded"`: only the shared nodes of
                     touching hip/sacrum elements tie the bones (gaps stay open)
   midline           u_x = 0 on the medial crop plane (mirror symmetry of the other hemipelvis)
-  clamp_load        the reduction force, spread uniformly over the clamp's outer face (the gripper)
+  gripper           the reduction force, spread uniformly over the clamp bar's two side faces (the robot's
+                    jaws; same convention as the `needle` branch), resultant at the clamp's mid-height
 Everything else is bonded (one conforming mesh: the paper's frictional interfaces are the `contact`
 branch's subject).
 """
@@ -99,6 +100,7 @@ class PelvisConfig:
     out: str | None = None
     figures: bool = True
     progress: bool = False
+    crosscheck_thickness: bool = True  # CT only: thickness again with the img branch's segmentation
 
     def __post_init__(self):
         if self.source not in ("ct", "ssm"):
@@ -146,6 +148,8 @@ class PelvisResult:
     comparison: list
     timing_s: dict
     ritz: dict
+    thickness_img: list = field(default_factory=list)
+    figures: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         from needletissue.runinfo import to_jsonable
@@ -197,15 +201,45 @@ def ritz_prediction(config: PelvisConfig, paths, free_length: list, load_point: 
     mid-height (where the resultant of the uniform clamp load acts)."""
     from needletissue import ritz
 
-    out = {"model": "two-layer Rayleigh-Ritz, cubic trial function (paper Eq. 13)", "per_needle": []}
+    out = {"model": "two-layer Rayleigh-Ritz, cubic trial function (paper Eq. 13); the whole force F on "
+                    "each needle as in the paper's comparison, and F/2 for reference", "per_needle": []}
     for p, l, z3 in zip(paths, free_length, load_point):
         layers = [ritz.Layer(n, t, k) for n, t, k in (("muscle", p.muscle_mm, 0.048), ("adipose", p.adipose_mm, 0.023))
                   if t > 0]
         model = ritz.RitzModel(diameter_mm=config.needle_diameter, free_length_mm=l, layers=tuple(layers),
                                load_point_mm=z3)
         res = ritz.solve_forces(forces, model)
+        half = ritz.solve_forces([f / 2 for f in forces], model)  # if the two needles share F equally
         out["per_needle"].append({"model": model.to_dict(), "tip_deflection_mm": [r.tip_deflection_mm for r in res],
-                                  "max_deflection_mm": [r.max_deflection_mm for r in res]})
+                                  "max_deflection_mm": [r.max_deflection_mm for r in res],
+                                  "max_deflection_half_force_mm": [r.max_deflection_mm for r in half]})
+    return out
+
+
+def thickness_crosscheck(config: PelvisConfig, pm) -> list:
+    """Soft-tissue thickness along each needle from the `img` branch's own segmentation and path walk
+    (needletissue.imaging.segment + geometry.thickness.thickness_along, LPS frame): an independent
+    check of geometry.pelvis.needle_paths. The path enters 10 mm outside our skin exit."""
+    from needletissue.geometry.pelvis import data_dir
+    from needletissue.geometry.thickness import thickness_along
+    from needletissue.imaging.segment import SegmentationConfig, segment
+
+    d = None if config.ct else data_dir() / "pelvis_ct"
+    ct = config.ct or d / "example_ct.nii.gz"
+    labels = config.labels or d / "example_seg_fast_force_split.nii.gz"
+    # split on the CT grid itself: the thickness needs bone vs soft tissue only, and the 0.75 mm split
+    # grid took ~4 GB more memory
+    seg = segment(ct, labels, SegmentationConfig(split_spacing=3.0))
+    ras_to_lps = np.array([-1.0, -1.0, 1.0])
+    out = []
+    for i, p in enumerate(pm.paths):
+        r = thickness_along(seg, (p.skin_exit - 10.0 * pm.site.direction) * ras_to_lps,
+                            pm.site.direction * ras_to_lps)
+        bone = None if r.bone_point is None else np.asarray(r.bone_point) * ras_to_lps
+        out.append({"needle": f"needle_{i + 1}", "total_mm": r.soft_tissue_thickness_mm,
+                    "by_tissue_mm": r.thickness_by_tissue,
+                    "bone_point_distance_mm": None if bone is None else float(np.linalg.norm(bone - p.entry)),
+                    "ours_total_mm": p.total_mm})
     return out
 
 
@@ -223,7 +257,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
     t_mesh = time.perf_counter() - t0
     tm = TaggedMesh(pm.points, pm.cells, pm.regions, pm.surfaces)
     tm.check(regions=["needle_1", "needle_2", "clamp", "hip_cortical"],
-             surfaces=["femur_fixed", "sacrum_fixed", "sacroiliac_joint", "clamp_load", "midline"])
+             surfaces=["femur_fixed", "sacrum_fixed", "sacroiliac_joint", "gripper", "midline"])
     if config.order == 2:
         from needletissue.geometry.pelvis import curve_needles
 
@@ -241,7 +275,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
     bcs += [Fixed("femur_fixed"), Fixed("sacrum_fixed")]
     if config.si_joint == "fixed":
         bcs.append(Fixed("sacroiliac_joint"))
-    bcs.append(SurfaceForce("clamp_load", total=tuple(fmax * fdir)))
+    bcs.append(SurfaceForce("gripper", total=tuple(fmax * fdir)))
     factors = [f / fmax for f in config.forces]
     fe = solve(model, bcs, load_factors=factors, solver=config.solver, progress=config.progress)
     t_solve = time.perf_counter() - t0 - t_mesh - t_model
@@ -257,12 +291,12 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
 
     out_dir = Path(config.out) if config.out else None
     loads = []
-    clamp_nodes = np.unique(qm.cells[qm.regions["clamp"]])
+    gripper_nodes = np.unique(qm.surfaces["gripper"])  # |mean u| over the gripper, as `fe needle`
     for f, r, rt in zip(config.forces, fe, ritz_tip):
         by = {k: float(v) for k, v in r.max_displacement_by_region.items()}
         needles = {k: by[k] for k in ("needle_1", "needle_2")}
         nmax = max(needles.values())
-        clamp_u = float(np.linalg.norm(r.displacement[clamp_nodes].mean(axis=0)))
+        clamp_u = float(np.linalg.norm(r.displacement[gripper_nodes].mean(axis=0)))
         vtu = None
         if out_dir is not None:
             vtu = str(r.write_vtu(out_dir / f"pelvis_{int(round(f))}N.vtu"))
@@ -293,13 +327,15 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         force_vector_unit=fdir,
         boundary_conditions={"femur_fixed": "fixed", "sacrum_fixed": "fixed",
                              "sacroiliac_joint": config.si_joint, "midline": "u_x = 0 (symmetry)",
-                             "clamp_load": "uniform surface force (dead load)",
+                             "gripper": "uniform surface force on the clamp's side faces (dead load)",
                              "interfaces": "bonded (one conforming mesh)"},
         notes=pm.notes,
         comparison=[],
         timing_s={"mesh": t_mesh, "model": t_model, "solve": t_solve, "cpu_s": time.process_time() - c0},
         ritz=ritz,
     )
+    if config.source == "ct" and config.crosscheck_thickness:
+        res.thickness_img = thickness_crosscheck(config, pm)
     res.comparison = comparison_table(res)
     if out_dir is not None:
         from needletissue.runinfo import write_json, write_run_files
@@ -310,12 +346,15 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         out_dir.mkdir(parents=True, exist_ok=True)
         meshio.write(out_dir / "pelvis_mesh.vtu", pm_m)
         res.wall_time_s = time.perf_counter() - t0
-        if config.figures:
-            from needletissue.fem.pelvis_report import figures
+        from needletissue.fem.pelvis_report import comparison_markdown, render_in_subprocess
+        from needletissue.runinfo import write_atomic
 
-            figures(res, fe[-1], qm, out_dir)
+        write_atomic(out_dir / "pelvis_comparison.md", comparison_markdown(res))
         write_run_files(out_dir, asdict(config), res.to_dict())
         write_json(out_dir / "pelvis_results.json", res.to_dict())
+        if config.figures:  # after the results are safe: a VTK crash must not lose them
+            res.figures = render_in_subprocess(out_dir)
+            write_json(out_dir / "pelvis_results.json", res.to_dict())
     return res
 
 

@@ -40,13 +40,15 @@ def _render(res, fe_last, mesh, path):
     f = np.asarray(res.force_vector_unit, float)
     normal = np.cross(d, f)
     normal /= np.linalg.norm(normal)
-    section = grid.clip(normal=normal, origin=centre, crinkle=True)
+    on_needle = axes[0].mean(axis=0)  # plane through needle_1's axis: its cut face is visible
+    section = grid.clip(normal=normal, origin=on_needle, crinkle=True)  # (plain clip segfaulted in VTK 9.x here)
     p = pv.Plotter(off_screen=True, window_size=(1400, 1000))
     p.add_mesh(section, scalars="|u| mm", cmap="viridis", show_edges=False,
                scalar_bar_args={"title": f"|u| (mm) at {res.results[-1].force_N:.0f} N"})
     p.add_mesh(grid.extract_feature_edges(), color="grey", opacity=0.15)
-    p.camera_position = [tuple(centre - 400 * normal), tuple(centre), (0, 0, 1)]
-    p.add_text("section through the needles (plane of needle axis and force)", font_size=10)
+    # clip() keeps the half behind the plane: look at the cut face from the front
+    p.camera_position = [tuple(on_needle + 220 * normal), tuple(on_needle), (0, 0, 1)]
+    p.add_text("section through needle_1 (plane of the needle axis and the force)", font_size=10)
     p.screenshot(str(path))
     p.close()
     return path
@@ -91,3 +93,60 @@ def _plots(res, out_dir):
     fig.savefig(f2, dpi=130)
     plt.close(fig)
     return [f1, f2]
+
+
+def comparison_markdown(res) -> str:
+    """The comparison table (ours beside the paper's) as Markdown, written next to the results."""
+
+    def fmt(v):
+        if isinstance(v, float):
+            return f"{v:.3f}"
+        if isinstance(v, (list, tuple)):
+            return " / ".join(fmt(x) for x in v)
+        return str(v)
+
+    lines = ["| quantity | this model | paper | difference |", "|---|---|---|---|"]
+    for row in res.comparison:
+        lines.append(f"| {row['quantity']} | {fmt(row['ours'])} | {fmt(row['paper'])} | {fmt(row['difference'])} |")
+    last = res.results[-1]
+    lines += ["", f"Max deformation per region at {last.force_N:.0f} N (mm): "
+              + ", ".join(f"{k} {v:.3f}" for k, v in sorted(last.max_deformation_mm.items(), key=lambda kv: -kv[1]))]
+    return "\n".join(lines) + "\n"
+
+
+def render_in_subprocess(out_dir) -> dict:
+    """Render the figures from the written VTU/JSON in a child process (VTK off-screen rendering has
+    crashed with a segfault inside long runs on this machine). Returns {"files": [...]} or {"error"}."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from needletissue.fem.pelvis_report import figures_from_files; "
+            "print('\\n'.join(figures_from_files(sys.argv[1])))")
+    env = dict(os.environ, PYVISTA_OFF_SCREEN="true", MPLBACKEND="Agg")
+    r = subprocess.run([sys.executable, "-c", code, str(out_dir)], capture_output=True, text=True, env=env)
+    if r.returncode != 0:
+        return {"error": f"figure process exited with {r.returncode}: {r.stderr.strip()[-300:]}"}
+    return {"files": [ln for ln in r.stdout.splitlines() if ln.strip()]}
+
+
+def figures_from_files(out_dir) -> list[str]:
+    """Figures from pelvis_results.json and the largest force's VTU in out_dir."""
+    import json
+    from types import SimpleNamespace as NS
+
+    import meshio
+
+    out_dir = Path(out_dir)
+    d = json.loads((out_dir / "pelvis_results.json").read_text())
+    last = d["results"][-1]
+    m = meshio.read(last["vtu"])
+    cells = m.cells[0].data
+    reg = np.asarray(m.cell_data["region"][0])
+    mesh = NS(points=m.points, cells=cells, regions={i: np.nonzero(reg == i)[0] for i in np.unique(reg)})
+    res = NS(site=d["site"], force_vector_unit=d["force_vector_unit"],
+             results=[NS(force_N=r["force_N"], max_needle_deformation_mm=r["max_needle_deformation_mm"],
+                         ritz_tip_deflection_mm=r["ritz_tip_deflection_mm"],
+                         max_deformation_mm=r["max_deformation_mm"]) for r in d["results"]])
+    files = [_render(res, NS(displacement=m.point_data["displacement"]), mesh, out_dir / "pelvis_deformation.png")]
+    files += _plots(res, out_dir)
+    return [str(f) for f in files]

@@ -604,7 +604,7 @@ def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needl
     assert set(names) <= set(order), set(names) - set(order)
     regions = {n: np.nonzero(names == n)[0] for n in order if np.any(names == n)}
 
-    surfaces = _surfaces(pts, tets, names, vol, frame, c_bottom, h_clamp, sacroiliac_gap)
+    surfaces = _surfaces(pts, tets, names, vol, frame, c_bottom, w_clamp, sacroiliac_gap)
     notes = list(vol.notes) + [
         f"tissue tets: argmax of Gaussian-smoothed (sigma {smoothing} voxel) label indicators at the centroid",
         f"hip cortical shell: centroid depth < max({cortical_thickness} mm, half the longest edge)",
@@ -640,12 +640,13 @@ def _largest_face_component(tets, names):
     return tets[k], names[k]
 
 
-def _surfaces(pts, tets, names, vol, frame, c_bottom, h_clamp, si_gap):
+def _surfaces(pts, tets, names, vol, frame, c_bottom, w_clamp, si_gap):
     """Boundary sets: femur_fixed (CT: femur faces on the crop's bottom plane; SSM: the femoral-head
     proxy's faces), sacrum_fixed (superior
     sacral surface: sacrum boundary faces within 6 mm of the sacrum's top), sacroiliac_joint (hip-bone
     faces shared with the sacrum or within si_gap of it), midline (all boundary faces on the medial crop
-    plane), clamp_load (the clamp's outer face, where the robot holds it)."""
+    plane), gripper (the clamp bar's two side faces at +-width/2, where the robot's jaws hold it and the
+    uniform load acts, as in the `needle` branch's model: resultant at the clamp's mid-height)."""
     from scipy import ndimage
 
     f, key = _faces(tets)
@@ -682,12 +683,12 @@ def _surfaces(pts, tets, names, vol, frame, c_bottom, h_clamp, si_gap):
     out["sacroiliac_joint"] = hipf & ((bnd & (d < si_gap)) | (other == "sacrum"))
     medial_x = lo[0] if vol.side == "right" else hi[0]
     out["midline"] = bnd & on(0, medial_x)
-    rel = (pts[f] - c_bottom) @ frame[2]
-    out["clamp_load"] = bnd & (fo == "clamp") & np.all(np.abs(rel - h_clamp) < 1e-6 * h_clamp + 1e-6, axis=1)
+    rel = np.abs((pts[f] - c_bottom) @ frame[1])
+    out["gripper"] = bnd & (fo == "clamp") & np.all(np.abs(rel - w_clamp / 2) < 1e-6 * w_clamp + 1e-6, axis=1)
     # Disjoint node sets (reactions per support then add up to the total): a face touching a node of an
     # earlier support set is left to that set.
     taken = np.zeros(len(pts), bool)
-    for n in ("femur_fixed", "sacrum_fixed", "sacroiliac_joint", "midline", "clamp_load"):
+    for n in ("femur_fixed", "sacrum_fixed", "sacroiliac_joint", "midline", "gripper"):
         out[n] = out[n] & ~taken[f].any(axis=1)
         taken[f[out[n]].ravel()] = True
     surfaces = {}
