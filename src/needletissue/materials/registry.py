@@ -53,6 +53,22 @@ class Material:
             missing = [n for n in names if n not in self.parameters]
             if missing:
                 raise InputError(f"{self.name}.parameters", f"missing {', '.join(missing)} for model {self.model}")
+            extra = sorted(set(self.parameters) - set(names))
+            if extra:
+                raise InputError(f"{self.name}.parameters", f"unknown {', '.join(extra)} for model {self.model}; "
+                                 f"expected {', '.join(names)}")
+            for n in names:
+                values = self.parameters[n]
+                if self.model == "ogden":
+                    if not isinstance(values, (list, tuple)):
+                        values = [values]
+                    if n == "alpha" and len(values) != len(_as_list_checked(self.name, "mu", self.parameters["mu"])):
+                        raise InputError(f"{self.name}.parameters", "mu and alpha need the same number of terms")
+                    _as_list_checked(self.name, n, values)
+                    if n == "alpha" and any(a == 0 for a in values):
+                        raise InputError(f"{self.name}.parameters.alpha", "every alpha must be non-zero")
+                else:
+                    check_number(f"{self.name}.parameters.{n}", values)
             if self.initial_shear_modulus <= 0:
                 raise InputError(f"{self.name}.parameters", "initial shear modulus must be > 0")
 
@@ -83,6 +99,18 @@ class Material:
             return E / (3 * (1 - 2 * nu))
         return TISSUE_BULK_RATIO * self.initial_shear_modulus
 
+    def nominal_stress(self, mode: str, stretch):
+        """Incompressible closed-form nominal stress (MPa) in a homogeneous load case (tissue laws)."""
+        from needletissue.materials import closed_form
+
+        return closed_form.nominal_stress(self.model, self.parameters, mode, stretch)
+
+    def stable_range(self, mode: str) -> tuple[float, float]:
+        """Drucker-stable stretch range (lo, hi) in a homogeneous incompressible load case (tissue laws)."""
+        from needletissue.materials import stability
+
+        return stability.stable_range(self.model, self.parameters, mode)
+
     def isochoric(self):
         """FElupe isochoric hyperelastic material (tissue laws only)."""
         fun, names = HYPERELASTIC_MODELS[self.model]
@@ -101,6 +129,11 @@ class Material:
         if self.model == "elastic":
             return fem.NeoHooke(mu=self.initial_shear_modulus, bulk=K)
         return self.isochoric() & fem.Volumetric(bulk=K)
+
+
+def _as_list_checked(name, field_name, values):
+    values = values if isinstance(values, (list, tuple)) else [values]
+    return [check_number(f"{name}.parameters.{field_name}[{i}]", v) for i, v in enumerate(values)]
 
 
 def _as_list(v):

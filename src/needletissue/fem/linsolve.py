@@ -1,0 +1,142 @@
+"""Linear solvers for the Newton iterations: SciPy direct, PyPardiso, PyAMG-preconditioned CG.
+
+Each factory returns a callable solver(A, b) -> x as FElupe's newtonraphson expects, and keeps the
+accumulated wall time of its calls in `.seconds` (for the benchmarks and results JSON).
+"""
+
+from __future__ import annotations
+
+import time
+from importlib.util import find_spec
+
+import numpy as np
+
+from needletissue.errors import InputError
+
+SOLVERS = ("auto", "pardiso", "scipy", "amg")
+# "auto": direct Pardiso up to this many free dofs (its LU needs ~4 GB at 163k dofs and grows ~n^1.4,
+# see docs/fem.md), PyAMG-CG above; SciPy's SuperLU only when Pardiso is missing and the model is small.
+AUTO_DIRECT_MAX_DOFS = 400_000
+AUTO_SCIPY_MAX_DOFS = 20_000
+
+
+def has_pardiso() -> bool:
+    return find_spec("pypardiso") is not None
+
+
+def choose(name: str, ndof: int) -> str:
+    """Resolve "auto" by the number of free dofs; validate explicit names."""
+    if name not in SOLVERS:
+        raise InputError("solver", f"must be one of {SOLVERS}, got {name!r}")
+    if name == "pardiso" and not has_pardiso():
+        raise InputError("solver", "pardiso requested but pypardiso is not installed (pip install pypardiso)")
+    if name != "auto":
+        return name
+    if has_pardiso():
+        return "pardiso" if ndof <= AUTO_DIRECT_MAX_DOFS else "amg"
+    return "scipy" if ndof <= AUTO_SCIPY_MAX_DOFS else "amg"
+
+
+class TimedSolver:
+    """solver(A, b) with accumulated time and call count."""
+
+    def __init__(self, name: str, fun):
+        self.name = name
+        self._fun = fun
+        self.seconds = 0.0
+        self.calls = 0
+        self.fun = fun
+
+    def __call__(self, A, b):
+        t = time.perf_counter()
+        x = self._fun(A, b)
+        self.seconds += time.perf_counter() - t
+        self.calls += 1
+        if not np.all(np.isfinite(x)):
+            raise np.linalg.LinAlgError(f"{self.name}: non-finite solution (singular or indefinite tangent)")
+        return x
+
+
+def make(name: str, points: np.ndarray | None = None, dof1: np.ndarray | None = None,
+         rtol: float = 1e-9, maxiter: int = 3000) -> TimedSolver:
+    """A timed linear solver. For "amg", `points` (n,3) and the free dofs `dof1` give the rigid-body
+    modes (near-null space) that smoothed aggregation needs for elasticity."""
+    if name == "pardiso":
+        import scipy.sparse as sp
+        from pypardiso import PyPardisoSolver
+
+        # symmetric tangents (hyperelastic bodies) -> LDL^T on the upper triangle (mtype -2):
+        # ~1.5x faster and half the factor memory of the general LU (mtype 11)
+        solvers = {-2: PyPardisoSolver(mtype=-2), 11: PyPardisoSolver(mtype=11)}
+
+        def fun(A, b):
+            A = A.tocsr()
+            amax = abs(A).max()
+            sym = abs(A - A.T).max() <= 1e-12 * amax
+            mtype = -2 if sym else 11
+            ps = solvers[mtype]
+            try:
+                return ps.solve(sp.triu(A, format="csr") if sym else A, np.asarray(b, float))
+            finally:
+                ps.free_memory(everything=True)  # no stale factors between iterations
+
+    elif name == "scipy":
+        from scipy.sparse.linalg import spsolve
+
+        def fun(A, b):
+            return spsolve(A.tocsc(), b)
+
+    elif name == "amg":
+        import pyamg
+        from scipy.sparse.linalg import cg
+
+        if points is None or dof1 is None:
+            raise InputError("solver", "amg needs the mesh points and free dofs for rigid-body modes")
+        B = rigid_body_modes(points)[dof1]
+
+        def fun(A, b):
+            A = A.tocsr()
+            # small coarsest level: its dense pseudo-inverse is applied every cycle
+            ml = pyamg.smoothed_aggregation_solver(A, B=B, symmetry="symmetric",
+                                                   strength=("symmetric", {"theta": 0.0}), max_coarse=50)
+            it = [0]
+
+            def count(_):
+                it[0] += 1
+
+            x, info = cg(A, b, rtol=rtol, atol=0.0, maxiter=maxiter, M=ml.aspreconditioner(), callback=count)
+            if info != 0:
+                raise np.linalg.LinAlgError(f"amg-cg did not converge in {maxiter} iterations (info={info})")
+            fun.cg_iterations += it[0]
+            return x
+
+        fun.cg_iterations = 0
+    else:
+        raise InputError("solver", f"must be one of {SOLVERS[1:]} here, got {name!r}")
+    return TimedSolver(name, fun)
+
+
+def single_threaded_openblas():
+    """Context: OpenBLAS (NumPy/SciPy) on one thread. Its threads spin on the many short vector
+    operations of CG/AMG and assembly: on the shared 2-core machine a 13k-vector norm took 256 us
+    threaded vs 2 us single-threaded, AMG-CG 33 s vs 2.8 s. MKL (Pardiso) is left alone."""
+    try:
+        from threadpoolctl import ThreadpoolController
+    except ImportError:  # optional: without it nothing changes
+        from contextlib import nullcontext
+
+        return nullcontext()
+    return ThreadpoolController().select(internal_api="openblas").limit(limits=1)
+
+
+def rigid_body_modes(points: np.ndarray) -> np.ndarray:
+    """(3n, 6) translations and infinitesimal rotations about the centroid, dof order x0,y0,z0,x1,..."""
+    x = points - points.mean(0)
+    n = len(points)
+    B = np.zeros((n, 3, 6))
+    B[:, 0, 0] = B[:, 1, 1] = B[:, 2, 2] = 1.0
+    # rotation about z: (-y, x, 0); about x: (0, -z, y); about y: (z, 0, -x)
+    B[:, 0, 3], B[:, 1, 3] = -x[:, 1], x[:, 0]
+    B[:, 1, 4], B[:, 2, 4] = -x[:, 2], x[:, 1]
+    B[:, 0, 5], B[:, 2, 5] = x[:, 2], -x[:, 0]
+    return B.reshape(3 * n, 6)

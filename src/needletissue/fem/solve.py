@@ -1,0 +1,275 @@
+"""Load stepping with automatic cut-back around FElupe's newtonraphson."""
+
+from __future__ import annotations
+
+import time
+from contextlib import nullcontext
+
+import numpy as np
+
+from needletissue.errors import ConvergenceError, InputError, check_number
+from needletissue.fem import linsolve
+from needletissue.fem.model import Fixed, FEModel, PrescribedDisplacement, SurfaceForce
+from needletissue.fem.result import FEResult, principal_stretches, von_mises
+
+
+class _Loads:
+    """FElupe boundaries and point loads for the BCs, updated to a load factor."""
+
+    def __init__(self, model: FEModel, bcs):
+        import felupe as fem
+
+        mesh = model.mesh
+        npts = len(mesh.points)
+        u = model.field[0]
+        self.boundaries = {}  # key -> (Boundary, full value)
+        self.reaction_sets = {}  # surface -> node ids
+        self.loads = []  # (PointLoad, full nodal values)
+        for i, bc in enumerate(bcs):
+            if isinstance(bc, Fixed):
+                comps = [(c, 0.0) for c in bc.components]
+            elif isinstance(bc, PrescribedDisplacement) and callable(bc.value):
+                nodes = mesh.surface_nodes(bc.surface)
+                vals = np.asarray(bc.value(mesh.points[nodes]), float)
+                if vals.shape != (len(nodes), 3) or not np.isfinite(vals).all():
+                    raise InputError(f"PrescribedDisplacement({bc.surface!r}).value",
+                                     f"the callable must return finite (k, 3) mm for the k={len(nodes)} surface nodes")
+                comps = list(enumerate(vals.T))
+            elif isinstance(bc, PrescribedDisplacement):
+                if len(bc.value) != 3:
+                    raise InputError(f"PrescribedDisplacement({bc.surface!r}).value", "needs 3 components (mm or None)")
+                comps = [(c, check_number(f"PrescribedDisplacement({bc.surface!r}).value[{c}]", v))
+                         for c, v in enumerate(bc.value) if v is not None]
+            elif isinstance(bc, SurfaceForce):
+                if len(bc.total) != 3:
+                    raise InputError(f"SurfaceForce({bc.surface!r}).total", "needs 3 components (N)")
+                total = np.array([check_number(f"SurfaceForce({bc.surface!r}).total[{c}]", v)
+                                  for c, v in enumerate(bc.total)])
+                mesh.surface_nodes(bc.surface)  # InputError naming the known surfaces
+                nodes, w = mesh.nodal_area_weights(bc.surface)
+                values = w[:, None] / w.sum() * total[None, :]
+                self.loads.append((fem.PointLoad(model.field, nodes, np.zeros_like(values)), values))
+                continue
+            else:
+                raise InputError("bcs", f"unknown boundary condition {bc!r}")
+            nodes = mesh.surface_nodes(bc.surface)
+            for c, value in comps:
+                if c not in (0, 1, 2):
+                    raise InputError(f"{type(bc).__name__}({bc.surface!r}).components", f"must be in (0, 1, 2), got {c}")
+                mask = np.zeros((npts, 3), bool)
+                mask[nodes, c] = True
+                self.boundaries[(i, c)] = (fem.Boundary(u, mask=mask), value)
+            self.reaction_sets[bc.surface] = nodes
+        if not self.boundaries:
+            raise InputError("bcs", "no Fixed or PrescribedDisplacement condition: the model can move as a rigid body")
+        self.dof0, self.dof1 = fem.dof.partition(model.field, self.fboundaries)
+
+    @property
+    def fboundaries(self):
+        return {str(k): b for k, (b, _) in self.boundaries.items()}
+
+    def apply(self, model, lam: float):
+        import felupe as fem
+
+        for b, v in self.boundaries.values():
+            b.update(lam * v)
+        for load, v in self.loads:
+            load.update(lam * v)
+        return fem.dof.apply(model.field, self.fboundaries, self.dof0)
+
+
+class _Progress:
+    """Rich progress over the load factor; the description shows the Newton iteration and residual."""
+
+    def __init__(self, enabled: bool, total: float):
+        self.enabled = enabled
+        self.total = total
+        if enabled:
+            from rich.console import Console
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self.bar = Progress(TextColumn("load {task.completed:.4g}/{task.total:.4g}"), BarColumn(),
+                                TextColumn("{task.description}"), TimeElapsedColumn(),
+                                console=Console(stderr=True), transient=False)
+            self.task = self.bar.add_task("", total=total)
+
+    def __enter__(self):
+        if self.enabled:
+            self.bar.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self.enabled:
+            self.bar.__exit__(*exc)
+
+    def update(self, lam=None, text=None):
+        if self.enabled:
+            kw = {}
+            if lam is not None:
+                kw["completed"] = lam
+            if text is not None:
+                kw["description"] = text
+            self.bar.update(self.task, **kw)
+
+
+def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=(), progress: bool = True,
+          initial_step: float | None = None, min_step: float = 1e-3, max_step: float | None = None,
+          tol: float = 1e-8, maxiter: int = 12, results: bool = True, predictor: bool = True) -> list[FEResult]:
+    """Solve the model quasi-statically, one FEResult per requested load factor.
+
+    bcs          : Fixed / PrescribedDisplacement / SurfaceForce; values and forces scale with the
+                   load factor (0 = unloaded).
+    load_factors : increasing factors > 0 at which results are returned, e.g. [1/3, 2/3, 1] for
+                   100/200/300 N of a 300 N force.
+    solver       : "auto" (by free dofs), "pardiso", "scipy" or "amg" (PyAMG-preconditioned CG).
+    items        : extra FElupe items (e.g. a contact item) assembled with the bodies.
+    initial_step : first increment of the load factor (default: the first requested factor).
+    min_step     : smallest increment after cut-backs (halving); below it ConvergenceError names the
+                   load factor reached. max_step caps the increment (default: no cap).
+    tol          : Newton tolerance on |residual of free dofs| / |reactions| (FElupe's norm).
+    maxiter      : Newton iterations per increment before a cut-back.
+    results      : False skips the stress/stretch evaluation (e.g. in benchmarks).
+    predictor    : start each increment from the linear extrapolation of the last converged one
+                   (fewer Newton iterations on smooth load paths; off after a cut-back).
+
+    The allowed increment grows 1.5x after an increment that converged in <= 5 iterations.
+    """
+    import felupe as fem
+
+    lams = [check_number("load_factors[]", float(x), gt=0) for x in np.atleast_1d(load_factors)]
+    if not lams or any(b <= a for a, b in zip(lams, lams[1:])):
+        raise InputError("load_factors", f"must be a non-empty strictly increasing list of numbers > 0, got {lams}")
+    check_number("min_step", min_step, gt=0)
+    step = lams[0] if initial_step is None else check_number("initial_step", initial_step, gt=0)
+    max_step = np.inf if max_step is None else check_number("max_step", max_step, gt=0)
+    step = min(step, max_step)
+    maxiter = int(check_number("maxiter", maxiter, ge=1))
+
+    t0 = time.perf_counter()
+    loads = _Loads(model, bcs)
+    name = linsolve.choose(solver, len(loads.dof1))
+    linear = linsolve.make(name, model.mesh.points, loads.dof1)
+    bodies = list(model.bodies.values())
+    all_items = [*bodies, *(ld for ld, _ in loads.loads), *items]
+    field = model.field
+
+    state = {"it": 0, "fnorm": np.nan}
+    bar = _Progress(progress, lams[-1])
+
+    class _Report(fem.Plugin):
+        def after_iteration(self, context, st):
+            state["it"] = st.iteration + 1
+            state["fnorm"] = st.fnorm
+            bar.update(text=f"step {nsteps + 1} (dλ={dl:.3g}) Newton {st.iteration + 1}: |r| = {st.fnorm:.2e}")
+
+    plugin = _Report()
+    lam, nsteps, nit, ncut = 0.0, 0, 0, 0
+    last_du, last_dl = None, 0.0  # last converged increment, for the predictor
+    newton_s = 0.0
+    norms: list[list[float]] = []
+    out = []
+    with bar if progress else nullcontext(), linsolve.single_threaded_openblas():
+        for target in lams:
+            while lam < target * (1 - 1e-12):
+                # equal sub-steps no larger than the allowed increment (no tiny remainders)
+                rest = target - lam
+                dl = rest / np.ceil(rest / min(step, max_step) - 1e-9)
+                saved = [f.values.copy() for f in field.fields]
+                if predictor and last_du is not None:
+                    for f, d in zip(field.fields, last_du):
+                        f.values = f.values + (dl / last_dl) * d
+                stateful = [*bodies, *items]  # e.g. a frictional contact item's history
+                checkpoints = [b.checkpoint() if hasattr(b, "checkpoint") else None for b in stateful]
+                ext0 = loads.apply(model, lam + dl)
+                ok, res, why = False, None, ""
+                ts = time.perf_counter()
+                try:
+                    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):  # failures are handled
+                        res = fem.newtonraphson(
+                            x0=field, items=all_items, dof1=loads.dof1, dof0=loads.dof0, ext0=ext0,
+                            solver=linear, tol=tol, maxiter=maxiter, verbose=0, plugins=[plugin])
+                    ok = bool(res.success) and np.all(np.isfinite(res.fun))
+                    if ok:  # the energies are defined for det F < 0 too: reject inverted elements
+                        jmin = min(_min_det_f(b) for b in bodies)
+                        if not jmin > 0:
+                            ok, why = False, f"inverted elements (min det F = {jmin:.3g})"
+                except InputError:
+                    raise
+                except (ValueError, ArithmeticError, RuntimeError, np.linalg.LinAlgError) as exc:
+                    why = f"{type(exc).__name__}: {exc}"
+                newton_s += time.perf_counter() - ts
+                if ok:
+                    field.link(res.x)
+                    last_du = [f.values - v for f, v in zip(field.fields, saved)]
+                    last_dl = dl
+                    lam += dl
+                    nsteps += 1
+                    nit += int(res.iterations)
+                    norms.append([float(x) for x in res.fnorms])
+                    if res.iterations <= 5:  # grow the allowed increment (dl may be a split of it)
+                        step = min(1.5 * max(step, dl), max_step)
+                    else:
+                        step = dl
+                    bar.update(lam=lam)
+                    continue
+                # failed: restore the last converged state and halve the increment
+                for f, v in zip(field.fields, saved):
+                    f.values = v
+                for b, c in zip(stateful, checkpoints):
+                    if c is not None:
+                        b.restore(c)
+                ncut += 1
+                last_du = None  # the path turned: no extrapolation from a failed direction
+                step = dl / 2
+                bar.update(text=f"cut-back to dλ={step:.3g} at λ={lam:.4g} ({why or 'no convergence in %d iterations' % maxiter})")
+                if step < min_step:
+                    loads.apply(model, lam)
+                    raise ConvergenceError(
+                        f"no convergence beyond load factor {lam:.6g} (target {target:.6g}): increment "
+                        f"{dl:.3g} failed and halving it would go below min_step={min_step:g} "
+                        f"({nsteps} steps, {nit} Newton iterations, {ncut} cut-backs; last: {why or 'max iterations'})")
+            if results:
+                # residual at the converged state for reactions
+                fvec = fem.tools._newton.fun_items(all_items, field)
+                out.append(_result(model, loads, fvec, target, nsteps, nit, ncut, time.perf_counter() - t0,
+                                   linear, newton_s, norms))
+            else:
+                out.append(FEResult(target, field[0].values.copy(), {}, {}, nsteps, nit, time.perf_counter() - t0,
+                                    model.mesh.stats(), ncut, linear.name,
+                                    {"newton": newton_s, "linear_solve": linear.seconds,
+                                     "assembly_and_update": newton_s - linear.seconds}, norms))
+    return out
+
+
+def _min_det_f(body) -> float:
+    """Smallest det F over the quadrature points of a body's last evaluation (the converged state)."""
+    F = body.results.kinematics[0]
+    return float(np.min(np.linalg.det(np.moveaxis(F, (0, 1), (-2, -1)))))
+
+
+def _result(model, loads, fvec, lam, nsteps, nit, ncut, wall, linear, newton_s, norms) -> FEResult:
+    mesh = model.mesh
+    u = model.field[0].values.copy()
+    umag = np.linalg.norm(u, axis=1)
+    fnod = fvec.reshape(-1, 3)
+    reactions = {s: fnod[n].sum(0) for s, n in loads.reaction_sets.items()}
+    maxu = {r: float(umag[np.unique(mesh.cells[ids])].max()) for r, ids in mesh.regions.items()}
+    ncell = len(mesh.cells)
+    vm = np.zeros(ncell)
+    stretch = np.zeros((ncell, 3))
+    for r, ids in mesh.regions.items():
+        body = model.bodies[r]
+        sigma = np.asarray(body.evaluate.cauchy_stress(body.field))  # (3, 3, q, c)
+        vm[ids] = von_mises(np.moveaxis(sigma, (0, 1), (-2, -1))).mean(0)
+        F = body.field[0].extract()  # (3, 3, q, c)
+        stretch[ids] = principal_stretches(np.moveaxis(F, (0, 1), (-2, -1))).mean(0)
+    tags = {r: i for i, r in enumerate(mesh.regions)}
+    return FEResult(
+        load_factor=lam, displacement=u, max_displacement_by_region=maxu, reaction_forces=reactions,
+        steps=nsteps, newton_iterations=nit, wall_time_s=wall, mesh_stats=mesh.stats(), cutbacks=ncut,
+        linear_solver=linear.name,
+        timing_s={"newton": newton_s, "linear_solve": linear.seconds, "assembly_and_update": newton_s - linear.seconds},
+        residual_norms=[list(n) for n in norms], region_tags=tags, points=mesh.points, cells=mesh.cells,
+        cell_data={"von_mises_MPa": vm, "principal_stretches": stretch,
+                   "region": mesh.region_of_cells().astype(np.int32)},
+    )

@@ -1,0 +1,70 @@
+"""The published FE-core API on a small mesh: BCs by surface name, results, VTU, errors."""
+
+import json
+
+import meshio
+import numpy as np
+import pytest
+
+from needletissue.errors import InputError
+from needletissue.fem import FEModel, Fixed, PrescribedDisplacement, SurfaceForce, TaggedMesh, solve, write_results
+
+
+@pytest.fixture(scope="module")
+def two_layers():
+    return TaggedMesh.box((10, 10, 8), (3, 3, 5), layers={"muscle": (0, 4), "adipose": (4, 8)})
+
+
+def test_force_equilibrium_and_outputs(two_layers, tmp_path):
+    """Reaction at the fixed base balances the applied total force (Newton's third law)."""
+    model = FEModel(two_layers, {"muscle": "muscle", "adipose": "adipose"})
+    F = np.array([0.05, 0.0, 0.1])
+    res = solve(model, [Fixed("zmin"), SurfaceForce("zmax", tuple(F))], [0.5, 1.0], progress=False)
+    assert [r.load_factor for r in res] == [0.5, 1.0]
+    np.testing.assert_allclose(res[-1].reaction_forces["zmin"], -F, atol=1e-6 * np.abs(F).max())
+    np.testing.assert_allclose(res[0].reaction_forces["zmin"], -F / 2, atol=1e-6 * np.abs(F).max())
+    # the softer, load-carrying top layer moves most; fixed nodes do not move
+    assert res[-1].max_displacement_by_region["adipose"] > res[-1].max_displacement_by_region["muscle"] > 0
+    assert np.abs(res[-1].displacement[two_layers.surface_nodes("zmin")]).max() == 0
+    d = res[-1].to_dict()
+    assert d["mesh_stats"]["cells_by_region"] == {"muscle": 2 * 2 * 2 * 6, "adipose": 2 * 2 * 2 * 6}  # 6 tets per hex
+    assert d["steps"] >= 2 and d["newton_iterations"] >= d["steps"]
+    path = res[-1].write_vtu(tmp_path / "out.vtu")
+    m = meshio.read(path)
+    assert set(m.cell_data) >= {"von_mises_MPa", "principal_stretches", "region"}
+    np.testing.assert_allclose(m.point_data["displacement"], res[-1].displacement)
+    payload = write_results(tmp_path / "run", res, {"load_N": 1.0})
+    saved = json.loads((tmp_path / "run" / "results.json").read_text())
+    assert saved == json.loads(json.dumps(payload)) and payload["vtu"] == ["fe_0.vtu", "fe_1.vtu"]
+    assert (tmp_path / "run" / "versions.json").exists() and (tmp_path / "run" / "config.toml").exists()
+
+
+def test_prescribed_displacement_is_reproduced(two_layers):
+    model = FEModel(two_layers, {"muscle": "muscle", "adipose": "adipose"}, order=2, formulation="mixed")
+    res = solve(model, [Fixed("zmin"), PrescribedDisplacement("zmax", (None, None, 2.0))], [1.0], progress=False)
+    top = model.mesh.surface_nodes("zmax")
+    np.testing.assert_allclose(res[0].displacement[top, 2], 2.0, rtol=1e-12)
+    # pulling up needs an upward force at the top and a downward one at the base
+    assert res[0].reaction_forces["zmax"][2] > 0
+    np.testing.assert_allclose(res[0].reaction_forces["zmin"], -res[0].reaction_forces["zmax"], atol=1e-8)
+
+
+def test_bad_input_names_the_field(two_layers):
+    with pytest.raises(InputError, match="materials"):
+        FEModel(two_layers, {"muscle": "muscle"})
+    model = FEModel(two_layers, {"muscle": "muscle", "adipose": "adipose"})
+    with pytest.raises(InputError, match="unknown surface 'gripper'"):
+        solve(model, [Fixed("zmin"), SurfaceForce("gripper", (1, 0, 0))], progress=False)
+    with pytest.raises(InputError, match="load_factors"):
+        solve(model, [Fixed("zmin")], [1.0, 0.5], progress=False)
+    with pytest.raises(InputError, match="solver"):
+        solve(model, [Fixed("zmin")], solver="mumps", progress=False)
+
+
+def test_progress_bar_goes_to_stderr(two_layers, capsys):
+    """The Rich bar reports on stderr (stdout stays clean for --json) with Newton residuals."""
+    model = FEModel(two_layers, {"muscle": "muscle", "adipose": "adipose"})
+    solve(model, [Fixed("zmin"), SurfaceForce("zmax", (0.0, 0.0, 0.1))], [1.0], progress=True)
+    out = capsys.readouterr()
+    assert out.out == ""
+    assert "Newton" in out.err and "|r|" in out.err
