@@ -88,6 +88,16 @@ def build_model(mesh: BoxMesh, materials: dict[str, object], friction: dict[str,
     return BlockModel(mesh, field, solids, contact)
 
 
+# the residual-decrease criterion stalls at the stick-slip transition of the smoothed friction
+# (the friction force saturates within eps_v); only admissible, finite trials are required
+RESIDUAL_LS = False
+
+
+def _finite(trial) -> bool:
+    """Line-search criterion: reject trials the contact item marks inadmissible (NaN residual)."""
+    return bool(np.all(np.isfinite(trial.fun)))
+
+
 @dataclass
 class StepResult:
     load_factor: float
@@ -125,11 +135,11 @@ def solve_steps(model: BlockModel, boundaries: dict, apply, factors, *, initial_
             ext0 = fem.dof.apply(field, boundaries, dof0)
             saved = [f.values.copy() for f in field.fields]
             saved_items = [i.checkpoint() for i in model.items if hasattr(i, "checkpoint")]
-            plugins = [fem.LinesearchPlugin(admissible=True, residual=True, max_halvings=8)] if linesearch else None
+            plugins = [fem.LinesearchPlugin(admissible=True, residual=RESIDUAL_LS, max_halvings=8, criteria=[_finite])] if linesearch else None
             try:
                 res = fem.newtonraphson(
                     x0=field, items=model.items, dof1=dof1, dof0=dof0, ext0=ext0,
-                    maxiter=maxiter, tol=tol, verbose=int(__import__("os").environ.get("NT_VERBOSE", 0)), plugins=plugins,
+                    maxiter=maxiter, tol=tol, verbose=0, plugins=plugins,
                 )
                 ok = bool(res.success)
             except (fem.NewtonConvergenceError, ArithmeticError, ValueError):
