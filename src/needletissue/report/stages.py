@@ -266,7 +266,7 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
                                 r.max_needle_deformation_mm, "mm", fe_key(r.force_N)))
         if r.force_N == 300.0:
             if r.theory_fe_difference_mm is not None:
-                comps.append(Comparison("FE - theory difference at 300 N (anatomical model)",
+                comps.append(Comparison("|FE - theory| difference at 300 N (anatomical model)",
                                         r.theory_fe_difference_mm, "mm", "theory_fe_difference_300N_mm"))
             if "adipose" in r.max_deformation_mm:
                 comps.append(Comparison("Adipose max deformation at 300 N (anatomical model)",
