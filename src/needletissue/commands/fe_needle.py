@@ -1,0 +1,85 @@
+"""`needletissue fe needle`: the parametric needle-tissue-bone FE model (two Schanz pins and a clamp)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+
+def register(app: typer.Typer, groups) -> None:
+    from needletissue.geometry.needle import NeedleGeometry
+
+    d = NeedleGeometry()
+
+    @groups.fe.command("needle")
+    def needle(
+        force: Optional[List[float]] = typer.Option(None, "--force", help="Reduction force, N (> 0; repeat; "
+                                                    "default 100 200 300), uniform over the gripper."),
+        needles: int = typer.Option(d.needles, "--needles", help="Number of needles: 1 or 2."),
+        diameter: float = typer.Option(d.diameter, "--diameter", help="Needle diameter d, mm (> 0)."),
+        free_length: float = typer.Option(d.free_length, "--free-length",
+                                          help="Needle length from the bone surface to its end, mm "
+                                               "(> tissue thickness + grip length)."),
+        spacing: float = typer.Option(d.spacing, "--spacing", help="Needle axis spacing s, mm (> diameter)."),
+        depth: float = typer.Option(d.depth, "--depth", help="Insertion depth h in bone, mm (< bone thickness)."),
+        mesh_size: float = typer.Option(d.mesh_size, "--mesh-size",
+                                        help="Element size in tissue, bone and clamp near the needles, mm."),
+        needle_mesh_size: float = typer.Option(d.needle_mesh_size, "--needle-mesh-size",
+                                               help="Element size on the needles, mm (<= diameter)."),
+        far_mesh_size: float = typer.Option(d.far_mesh_size, "--far-mesh-size",
+                                            help="Element size at the far boundary, mm (>= mesh size)."),
+        direction: str = typer.Option("0,1,0", "--direction",
+                                      help="Force direction x,y,z (normalised; default y: lateral, "
+                                           "perpendicular to the needles and their plane)."),
+        order: int = typer.Option(2, "--order", help="Element order: 2 (quadratic, default) or 1."),
+        no_ritz: bool = typer.Option(False, "--no-ritz", help="Skip the Rayleigh-Ritz comparison."),
+        out: Optional[Path] = typer.Option(None, "--out", help="Output folder: mesh, VTU per force, "
+                                           "results.json, config.toml, versions.json, figures."),
+        json_out: bool = typer.Option(False, "--json", help="Print the results JSON to stdout."),
+    ):
+        """Solve the needle-tissue-bone model at each force; report needle, clamp and tissue deformation
+        and the Rayleigh-Ritz comparison. Units: mm, N, MPa."""
+        from needletissue.errors import InputError
+        from needletissue.fem.needle import NeedleModelConfig, run_needle_model
+
+        try:
+            dvec = tuple(float(x) for x in direction.split(","))
+        except ValueError:
+            raise InputError("--direction", f"expected three numbers x,y,z, got {direction!r}") from None
+        if len(dvec) != 3:
+            raise InputError("--direction", f"expected three numbers x,y,z, got {direction!r}")
+        geometry = NeedleGeometry(needles=needles, diameter=diameter, free_length=free_length, spacing=spacing,
+                                  depth=depth, mesh_size=mesh_size, needle_mesh_size=needle_mesh_size,
+                                  far_mesh_size=far_mesh_size)
+        cfg = NeedleModelConfig(geometry=geometry, forces=tuple(force or (100.0, 200.0, 300.0)), direction=dvec,
+                                order=order, ritz=not no_ritz, progress=not json_out)
+        result = run_needle_model(cfg, out)
+        if json_out:
+            from needletissue.runinfo import to_jsonable
+
+            print(json.dumps(to_jsonable(result.to_dict()), indent=2))
+            return
+        _table(result, out)
+
+
+def _table(result, out) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    m = result.mesh
+    t = Table(title=f"Needle model: {m['tetrahedra']} tets, {m['quadratic_nodes']} nodes, "
+                    f"{result.wall_time_s:.1f} s")
+    for col in ("force N", "max needle mm", "clamp mm", "adipose mm", "muscle mm", "Ritz tip mm", "FE - Ritz mm"):
+        t.add_column(col, justify="right")
+    for r in result.results:
+        f = (lambda v: "-" if v is None else f"{v:.3f}")
+        t.add_row(f"{r.force_N:g}", f(r.max_needle_deformation_mm), f(r.clamp_displacement_mm),
+                  f(r.max_deformation_mm.get("adipose")), f(r.max_deformation_mm.get("muscle")),
+                  f(r.ritz_tip_deflection_mm), f(r.theory_fe_difference_mm))
+    c = Console()
+    c.print(t)
+    if out is not None:
+        c.print(f"wrote {out}/results.json, VTU and figures")

@@ -1,0 +1,75 @@
+"""`needletissue fe pelvis`: the anatomical pelvic reduction model (docs/pelvis_model.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def register(app, groups) -> None:
+    @groups.fe.command("pelvis")
+    def pelvis(
+        ct: Path = typer.Option(None, "--ct", help="CT volume (NIfTI, HU). Default: the example CT in the data folder."),
+        labels: Path = typer.Option(None, "--labels", help="Label map on the CT grid (TotalSegmentator ids)."),
+        ssm: bool = typer.Option(False, "--ssm", help="Use the mean SSM bone surfaces (soft tissue by offsetting)."),
+        force: list[float] = typer.Option(None, "--force", help="Reduction force on the clamp, N (repeat)."),
+        force_direction: str = typer.Option("0,0,-1", "--force-direction",
+                                            help="Force direction x,y,z (patient RAS; made transverse to the needles)."),
+        site: str = typer.Option("supra_acetabular", "--site", help="supra_acetabular or iliac_crest."),
+        side: str = typer.Option("right", "--side", help="Hemipelvis with the needles: right or left."),
+        mesh_size: float = typer.Option(3.0, "--mesh-size", help="Soft-tissue element size at the needles, mm."),
+        needle_diameter: float = typer.Option(5.0, "--needle-diameter", help="Needle diameter, mm."),
+        si_joint: str = typer.Option("fixed", "--si-joint", help="Sacroiliac joint: fixed (paper) or bonded."),
+        out: Path = typer.Option(None, "--out", help="Folder for VTU, figures, config, versions and results."),
+        json_out: bool = typer.Option(False, "--json", help="Print the results as JSON."),
+    ):
+        """Hemipelvis from CT (or SSM) with two needles and a clamp; max needle and tissue deformation,
+        ranking, thickness along the needles and the Ritz comparison. Units mm, N."""
+        import json
+
+        from needletissue.errors import InputError
+        from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+
+        if ssm and (ct is not None or labels is not None):
+            raise InputError("--ssm", "give either --ssm or --ct/--labels, not both")
+        if (ct is None) != (labels is None):
+            raise InputError("--ct/--labels", "give both --ct and --labels (or neither for the example CT)")
+        try:
+            fdir = [float(x) for x in force_direction.split(",")]
+        except ValueError:
+            raise InputError("--force-direction", f"expected x,y,z numbers, got {force_direction!r}") from None
+        if len(fdir) != 3:
+            raise InputError("--force-direction", f"expected three numbers x,y,z, got {force_direction!r}")
+        config = PelvisConfig(
+            source="ssm" if ssm else "ct", ct=str(ct) if ct else None, labels=str(labels) if labels else None,
+            side=side, site=site, forces=list(force) if force else [100.0, 200.0, 300.0], force_direction=fdir,
+            mesh_size=mesh_size, needle_diameter=needle_diameter, si_joint=si_joint,
+            out=str(out) if out else None, progress=not json_out,
+        )
+        res = run_pelvis_model(config)
+        d = res.to_dict()
+        if json_out:
+            keep = ("mesh", "wall_time_s", "results", "ranking", "thickness", "comparison")
+            print(json.dumps({k: d[k] for k in keep}, indent=2))
+            return
+        from rich.console import Console
+        from rich.table import Table
+
+        con = Console()
+        t = Table(title=f"pelvis model: {d['mesh']['tetrahedra']} tets, {d['mesh']['nodes']} nodes, "
+                        f"{d['wall_time_s']:.0f} s")
+        for c in ("force N", "max needle mm", "clamp mm", "Ritz mm", "|Ritz-FE| mm"):
+            t.add_column(c, justify="right")
+        for r in d["results"]:
+            t.add_row(f"{r['force_N']:.0f}", f"{r['max_needle_deformation_mm']:.3f}",
+                      f"{r['clamp_displacement_mm']:.3f}", f"{r['ritz_tip_deflection_mm']:.3f}",
+                      f"{r['theory_fe_difference_mm']:.3f}")
+        con.print(t)
+        last = d["results"][-1]["max_deformation_mm"]
+        con.print("ranking (largest first): " + " > ".join(f"{n} {last[n]:.2f} mm" for n in d["ranking"]))
+        for th in d["thickness"]:
+            con.print(f"{th['needle']}: muscle {th['muscle_mm']:.1f} mm, adipose {th['adipose_mm']:.1f} mm, "
+                      f"total {th['total_mm']:.1f} mm")
+        if out:
+            con.print(f"written: {out}/")

@@ -1,0 +1,368 @@
+"""Frictional contact between deformable FElupe bodies via the IPC Toolkit (``ipctk``).
+
+``FrictionalContact`` is a FElupe item (attributes ``field``, ``assemble``, ``results``): it is
+assembled beside the SolidBodies by ``felupe.newtonraphson``/``Job`` and by
+``needletissue.fem.solve(..., items=[contact])``. Its vector and matrix are the gradient and Hessian
+of the IPC barrier potential (normal contact) plus the smoothed, lagged friction dissipative potential,
+mapped from the collision-surface vertices to the global displacement dofs.
+
+Modelling choices (details and the reasons in docs/contact.md):
+
+* Interfaces come from a conforming mesh split by ``contact_mesh.split_interfaces``; the two sides
+  start coincident. The barrier needs a positive distance, so side b's collision vertices are shifted
+  by ``dhat`` along side a's outward normal: zero physical gap is the barrier's activation distance,
+  and the physical interpenetration is bounded by ``dhat`` (the barrier diverges before it).
+* Area-weighted ("convergent") barrier: ``stiffness`` is a contact stiffness per area (MPa/mm), so the
+  contact pressure does not depend on the mesh size.
+* Friction (Li et al. 2020, IPC): slip is the displacement since the last converged step; the normal
+  forces and tangent bases are lagged and refreshed at every residual evaluation (``lag="iteration"``,
+  the converged state is consistent: the friction uses the converged normal forces), or only once per
+  step (``lag="step"``: the previous converged state, cheaper Jacobian but one step behind).
+  Slip below ``eps_v`` (mm) is the smoothed static regime.
+* Every evaluation checks, by continuous collision detection from the last converged state, that the
+  surfaces did not pass through each other; if they did, the residual is NaN, so a line search halves
+  the step and a plain Newton iteration fails and the load step is cut back.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field as dc_field
+from functools import lru_cache
+
+import ipctk
+import numpy as np
+from felupe.mechanics import Assemble, Results
+from scipy.sparse import coo_matrix, csr_matrix
+
+from needletissue.errors import InputError, check_number
+from needletissue.fem.contact_mesh import SplitInterface, triangles
+
+PAPER_INTERFACES = {"needle-muscle": 0.3, "muscle-bone": 0.3, "bone-needle": 0.9}
+"""Friction coefficients of the paper (section 2.3): every other interface is bonded."""
+
+
+@dataclass(frozen=True)
+class ContactSettings:
+    """Numerical parameters of the contact (units mm, MPa).
+
+    dhat: barrier activation distance = largest admitted interpenetration, mm.
+    stiffness: barrier stiffness per area, MPa/mm (None: ``default_stiffness(youngs_modulus, dhat)``).
+    youngs_modulus: modulus of the softer body, MPa, used only for the default stiffness.
+    eps_v: slip below which friction is smoothed (static regime), mm per load step.
+    lag: "iteration" (refresh normal forces/tangent bases at every residual) or "step".
+    """
+
+    dhat: float = 1e-2
+    stiffness: float | None = None
+    youngs_modulus: float = 1.0
+    eps_v: float = 1e-3
+    lag: str = "step"
+
+    def __post_init__(self):
+        check_number("contact.dhat", self.dhat, gt=0)
+        check_number("contact.youngs_modulus", self.youngs_modulus, gt=0)
+        check_number("contact.eps_v", self.eps_v, gt=0)
+        if self.stiffness is not None:
+            check_number("contact.stiffness", self.stiffness, gt=0)
+        if self.lag not in ("iteration", "step"):
+            raise InputError("contact.lag", f"must be 'iteration' or 'step', got {self.lag!r}")
+
+    @property
+    def kappa(self) -> float:
+        if self.stiffness is not None:
+            return float(self.stiffness)
+        return default_stiffness(self.youngs_modulus, self.dhat)
+
+
+def default_stiffness(youngs_modulus: float, dhat: float) -> float:
+    """Barrier stiffness (MPa/mm) at which a flat contact carries a pressure of 0.1 E at d = dhat/2.
+
+    Higher pressures push d further towards 0 but never through it. The pressure per unit stiffness
+    of ipctk's area-weighted barrier is measured on a flat patch (``unit_pressure``), not assumed.
+    """
+    return 0.1 * youngs_modulus / unit_pressure(dhat, 0.5 * dhat)
+
+
+@lru_cache(maxsize=64)
+def unit_pressure(dhat: float, distance: float) -> float:
+    """Contact pressure (MPa) of the barrier with stiffness 1 between two parallel, coincidently
+    meshed flat 8 x 8 patches at the given distance (interior vertices only, to avoid edge effects)."""
+    n, L = 9, 8.0
+    g = np.linspace(0, L, n)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    xy = np.c_[X.ravel(), Y.ravel()]
+    ids = np.arange(n * n).reshape(n, n)
+    q = np.c_[ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel(), ids[:-1, 1:].ravel()]
+    tri = np.vstack([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
+    V = np.vstack([np.c_[xy, np.zeros(n * n)], np.c_[xy, np.full(n * n, distance)]])
+    F = np.vstack([tri, tri[:, ::-1] + n * n]).astype(np.int32)
+    mesh = ipctk.CollisionMesh(np.asfortranarray(V), np.asfortranarray(ipctk.edges(F), dtype=np.int32), np.asfortranarray(F))
+    mesh.can_collide = ipctk.make_connected_components_filter(np.asfortranarray(F))
+    c = _collisions()
+    c.build(mesh, np.asfortranarray(V), dhat)
+    g = ipctk.BarrierPotential(dhat, 1.0, True).gradient(c, mesh, np.asfortranarray(V)).reshape(-1, 3)
+    interior = (ids[2:-2, 2:-2].ravel()) + n * n  # top-patch vertices away from the rim
+    h = L / (n - 1)
+    return float(-g[interior, 2].mean() / h**2)
+
+
+def _collisions():
+    c = ipctk.NormalCollisions()
+    c.use_area_weighting = True
+    c.collision_set_type = ipctk.NormalCollisions.IMPROVED_MAX_APPROX
+    return c
+
+
+def resolve_interfaces(mesh, mode: str = "paper", overrides: dict[str, float] | None = None) -> dict[str, float]:
+    """Interfaces to model as frictional contact -> friction coefficient.
+
+    mode "bonded": none (unless overridden); "paper": those of PAPER_INTERFACES present in the mesh
+    (groups with regions that share faces). overrides {"needle-muscle": 0.3, ...} add or change a pair;
+    a pair not present in the mesh or a coefficient < 0 raises InputError.
+    """
+    from needletissue.fem.contact_mesh import group_regions, interface_faces, parse_interface_name
+
+    if mode not in ("bonded", "paper"):
+        raise InputError("interfaces", f"must be 'bonded' or 'paper', got {mode!r}")
+
+    def present(name):
+        ga, gb = parse_interface_name(name)
+        ra, rb = group_regions(mesh, ga), group_regions(mesh, gb)
+        return bool(ra) and bool(rb) and len(interface_faces(mesh, ra, rb)[0]) > 0
+
+    def canonical(name):
+        ga, gb = parse_interface_name(name)
+        for known in PAPER_INTERFACES:
+            if set(parse_interface_name(known)) == {ga, gb}:
+                return known
+        return name
+
+    chosen = {}
+    if mode == "paper":
+        chosen = {k: v for k, v in PAPER_INTERFACES.items() if present(k)}
+    for name, mu in (overrides or {}).items():
+        mu = check_number(f"interfaces.{name}", mu, ge=0)
+        key = canonical(name)
+        if not present(key):
+            raise InputError(
+                "interfaces",
+                f"interface {name!r} does not exist in the mesh (regions: {sorted(mesh.regions)})",
+            )
+        chosen[key] = mu
+    return chosen
+
+
+@dataclass
+class ContactSurface:
+    """The collision surface of all split interfaces (vertex ids index the full mesh)."""
+
+    vertices: np.ndarray  # (nv,) full node ids
+    faces: np.ndarray  # (nf, 3) local vertex ids (linear triangles)
+    offset: np.ndarray  # (nv, 3) shift of the collision vertices (side b: dhat * normal of side a)
+    side_a: np.ndarray  # (nv,) bit mask: interfaces where the vertex is on side a
+    side_b: np.ndarray  # (nv,) bit mask: interfaces where the vertex is on side b
+    friction: np.ndarray  # (nv,) friction coefficient per vertex
+    interfaces: list[SplitInterface] = dc_field(default_factory=list)
+
+    @classmethod
+    def build(cls, points, interfaces: list[SplitInterface], friction: dict[str, float], gap: float):
+        if len(interfaces) > 62:
+            raise InputError("interfaces", "at most 62 contact interfaces")
+        points = np.asarray(points, dtype=float)
+        tri_a = [triangles(i.faces_a) for i in interfaces]
+        tri_b = [triangles(i.faces_b) for i in interfaces]
+        vertices = np.unique(np.concatenate([t.ravel() for t in tri_a + tri_b]))
+        local = np.full(len(points), -1)
+        local[vertices] = np.arange(len(vertices))
+        side_a = np.zeros(len(vertices), dtype=np.int64)
+        side_b = np.zeros(len(vertices), dtype=np.int64)
+        mu = np.zeros(len(vertices))
+        count = np.zeros(len(vertices))
+        normal_b = np.zeros((len(vertices), 3))
+        for k, (itf, ta, tb) in enumerate(zip(interfaces, tri_a, tri_b)):
+            side_a[local[ta.ravel()]] |= 1 << k
+            side_b[local[tb.ravel()]] |= 1 << k
+            m = check_number(f"interfaces.{itf.name}", friction[itf.name], ge=0)
+            for t in (ta, tb):
+                ids = np.unique(local[t.ravel()])
+                mu[ids] += m
+                count[ids] += 1
+            # area-weighted normal of side a, accumulated on the side-b vertices
+            p0, p1, p2 = (points[ta[:, j]] for j in range(3))
+            n = np.cross(p1 - p0, p2 - p0)
+            for j in range(3):
+                np.add.at(normal_b, local[tb[:, j]], n)
+        length = np.linalg.norm(normal_b, axis=1, keepdims=True)
+        offset = np.divide(normal_b, length, out=np.zeros_like(normal_b), where=length > 0) * gap
+        faces = local[np.vstack(tri_a + tri_b)]
+        return cls(vertices, faces, offset, side_a, side_b, mu / np.maximum(count, 1), list(interfaces))
+
+
+class FrictionalContact:
+    """FElupe item: IPC barrier contact + lagged smoothed friction on split interfaces.
+
+    field: the global FieldContainer (its first field is the displacement on all mesh points).
+    surface: ContactSurface of the split interfaces; settings: ContactSettings.
+    ``results.statevars`` holds the displacements of the collision vertices at the last converged
+    step (the reference of the slip); ``results.info`` the contact state of the last evaluation.
+    """
+
+    def __init__(self, field, surface: ContactSurface, settings: ContactSettings = ContactSettings()):
+        self.field = field
+        self.surface = surface
+        self.settings = settings
+        self.npoints = field[0].values.shape[0]
+        points = np.asarray(field.region.mesh.points, dtype=float)
+        self.rest = np.asfortranarray(points[surface.vertices] + surface.offset)
+        edges = ipctk.edges(np.asfortranarray(surface.faces, dtype=np.int32))
+        self.cmesh = ipctk.CollisionMesh(
+            self.rest, np.asfortranarray(edges, dtype=np.int32), np.asfortranarray(surface.faces, dtype=np.int32)
+        )
+        # bodies are separate connected components of the collision surface after the split:
+        # only cross-component pairs collide (no self-contact of a body's own surface)
+        self.cmesh.can_collide = ipctk.make_connected_components_filter(
+            np.asfortranarray(surface.faces, dtype=np.int32)
+        )
+        self.barrier = ipctk.BarrierPotential(settings.dhat, settings.kappa, True)
+        self.friction = ipctk.FrictionPotential(settings.eps_v)
+        # Tight-Inclusion CCD stalls on coincident parallel faces (the split interfaces); the
+        # additive CCD is conservative and fast there
+        self.ccd = ipctk.AdditiveCCD()
+        self.mu = np.asarray(surface.friction, dtype=float)
+        self.collisions = _collisions()
+        self.tangential = ipctk.TangentialCollisions()
+        nv = len(surface.vertices)
+        self.dofs = (3 * surface.vertices[:, None] + np.arange(3)).ravel()
+        self.results = Results()
+        self.results.statevars = np.zeros((nv, 3))
+        self.results.info = {}
+        self._lagged = None  # (vertices, collisions) of the last converged step for lag="step"
+        self._state = None
+        self.assemble = Assemble(vector=self._vector, matrix=self._matrix)
+
+    # -- helpers -------------------------------------------------------------------------------
+    def _u(self):
+        return np.asarray(self.field[0].values)[self.surface.vertices]
+
+    def positions(self, u=None) -> np.ndarray:
+        """Collision-vertex positions for the collision-vertex displacements u."""
+        if u is None:
+            u = self._u()
+        return np.asfortranarray(self.rest + u)
+
+    def checkpoint(self):
+        return {"statevars": self.results.statevars.copy(), "lagged": self._lagged}
+
+    def restore(self, checkpoint):
+        self.results.statevars = checkpoint["statevars"].copy()
+        self._lagged = checkpoint["lagged"]
+
+    def _global_vector(self, g):
+        shape = (self._ndof_total(), 1)
+        return csr_matrix((g, (self.dofs, np.zeros_like(self.dofs))), shape=shape)
+
+    def _ndof_total(self):
+        return 3 * self.npoints
+
+    # -- assembly --------------------------------------------------------------------------------
+    def _evaluate(self):
+        u = self._u()
+        u_prev = self.results.statevars
+        V = self.positions(u)
+        V0 = self.positions(u_prev)
+        admissible = bool(np.all(np.isfinite(V))) and ipctk.is_step_collision_free(
+            self.cmesh, V0, V, narrow_phase_ccd=self.ccd
+        )
+        state = {"u": u, "V": V, "admissible": admissible}
+        if admissible:
+            self.collisions.build(self.cmesh, V, self.settings.dhat)
+            self.tangential = ipctk.TangentialCollisions()
+            if self.settings.lag == "iteration":
+                lag_V, lag_c = V, self.collisions
+            else:
+                lag_V, lag_c = self._lagged if self._lagged is not None else (V0, ipctk.NormalCollisions())
+            if np.any(self.mu > 0) and len(lag_c) > 0:
+                self.tangential.build(self.cmesh, lag_V, lag_c, self.barrier, self.mu, self.mu)
+            state["slip"] = np.asfortranarray(u - u_prev)
+        self._state = state
+        self.results._statevars = u.copy()
+        return state
+
+    def _vector(self, field=None, parallel=False):
+        if field is not None:
+            self.field = field
+        s = self._evaluate()
+        if not s["admissible"]:
+            g = np.full(len(self.dofs), np.nan)
+        else:
+            g = self.barrier.gradient(self.collisions, self.cmesh, s["V"])
+            if len(self.tangential) > 0:
+                g = g + self.friction.gradient(self.tangential, self.cmesh, s["slip"])
+            self.results.info = self.contact_state(s["V"])
+        self.results.force = self._global_vector(g)
+        return self.results.force
+
+    def _matrix(self, field=None, parallel=False):
+        if field is not None:
+            self.field = field
+        s = self._state
+        if s is None or not np.array_equal(s["u"], self._u()):
+            s = self._evaluate()
+        n = self._ndof_total()
+        if not s["admissible"]:
+            return csr_matrix((n, n))
+        # exact Hessians: a PSD projection (CLAMP) made Newton converge linearly (measured)
+        psd = ipctk.PSDProjectionMethod.NONE
+        H = self.barrier.hessian(self.collisions, self.cmesh, s["V"], psd)
+        if len(self.tangential) > 0:
+            H = H + self.friction.hessian(self.tangential, self.cmesh, s["slip"], psd)
+        H = coo_matrix(H)
+        K = csr_matrix((H.data, (self.dofs[H.row], self.dofs[H.col])), shape=(n, n))
+        self.results.stiffness = K
+        return K
+
+    def update_lag(self):
+        """For lag="step": take the normal forces and tangent bases of the current state."""
+        V = self.positions()
+        c = _collisions()
+        c.build(self.cmesh, V, self.settings.dhat)
+        self._lagged = (V, c)
+
+    # -- output ----------------------------------------------------------------------------------
+    def contact_state(self, V=None) -> dict:
+        """Number of active contacts, smallest distance and largest interpenetration (mm)."""
+        if V is None:
+            V = self.positions()
+        c = self.collisions
+        # ipctk returns the squared distance
+        dmin = np.sqrt(c.compute_minimum_distance(self.cmesh, V)) if len(c) else float(self.settings.dhat)
+        return {
+            "active_contacts": len(c),
+            "min_distance_mm": float(dmin),
+            "max_interpenetration_mm": float(max(0.0, self.settings.dhat - dmin)),
+        }
+
+    def contact_forces(self) -> np.ndarray:
+        """Nodal contact + friction forces on the collision vertices (nv, 3), N (at the last state)."""
+        s = self._evaluate()
+        g = self.barrier.gradient(self.collisions, self.cmesh, s["V"])
+        if len(self.tangential) > 0:
+            g = g + self.friction.gradient(self.tangential, self.cmesh, s["slip"])
+        return -g.reshape(-1, 3)
+
+    def gap_opening(self, displacement: np.ndarray) -> dict[str, np.ndarray]:
+        """Normal opening (mm, > 0 = separated) of each originally coincident node pair per interface."""
+        out = {}
+        points = np.asarray(self.field.region.mesh.points, dtype=float)
+        for itf in self.surface.interfaces:
+            ta = triangles(itf.faces_a)
+            n = np.zeros((len(points), 3))
+            p0, p1, p2 = (points[ta[:, j]] for j in range(3))
+            fn = np.cross(p1 - p0, p2 - p0)
+            for j in range(3):
+                np.add.at(n, ta[:, j], fn)
+            na = n[itf.nodes_a]
+            na /= np.linalg.norm(na, axis=1, keepdims=True)
+            jump = displacement[itf.nodes_b] - displacement[itf.nodes_a]
+            out[itf.name] = np.einsum("ij,ij->i", jump, na)
+        return out

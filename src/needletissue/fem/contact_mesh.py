@@ -1,0 +1,192 @@
+"""Turn bonded (conforming) interfaces of a tetrahedral TaggedMesh into contact pairs.
+
+A conforming mesh shares nodes across every interface, so the bodies are glued. For contact to act,
+the nodes of a named interface must be duplicated: the cells of one side (side ``b``) get copies of
+the interface nodes, the other side keeps the originals. Interfaces are named by the two region
+groups they separate, e.g. ``needle-muscle``; a group matches a region of the same name or a region
+whose name starts with ``group_`` or ends with ``_group`` (``needle`` -> ``needle_1``, ``needle_2``;
+``bone`` -> ``cortical_bone``, ``cancellous_bone``). Several interfaces are split one after the other,
+so a node on a line where three contact interfaces meet ends up with one copy per body.
+
+Works for linear (4-node) and quadratic (10-node, VTK order) tetrahedra.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from needletissue.errors import InputError
+
+# corner faces of a tetrahedron (orientation is fixed later from the opposite vertex)
+_TET_FACES = np.array([[0, 1, 2], [0, 1, 3], [1, 2, 3], [0, 2, 3]])
+_OPPOSITE = np.array([3, 2, 0, 1])
+# VTK tetra10 mid-edge node of each corner edge
+_TET10_EDGE = {(0, 1): 4, (1, 2): 5, (0, 2): 6, (0, 3): 7, (1, 3): 8, (2, 3): 9}
+
+
+@dataclass(frozen=True)
+class SplitInterface:
+    """One interface after splitting.
+
+    faces_a, faces_b: (k, 3|6) node ids of the interface faces, oriented outward of side a / b
+    (VTK triangle / triangle6 order). nodes_a, nodes_b: the originally coincident node pairs
+    (nodes_b are the new copies owned by side b).
+    """
+
+    name: str
+    regions_a: tuple[str, ...]
+    regions_b: tuple[str, ...]
+    faces_a: np.ndarray
+    faces_b: np.ndarray
+    nodes_a: np.ndarray
+    nodes_b: np.ndarray
+
+
+def group_regions(mesh, group: str) -> tuple[str, ...]:
+    """Regions of ``mesh`` that belong to a region group name (see module docstring)."""
+    return tuple(
+        r
+        for r in mesh.regions
+        if r == group or r.startswith(group + "_") or r.endswith("_" + group)
+    )
+
+
+def parse_interface_name(name: str) -> tuple[str, str]:
+    parts = name.split("-")
+    if len(parts) != 2 or not all(parts):
+        raise InputError("interfaces", f"interface name {name!r} must be 'groupA-groupB', e.g. 'needle-muscle'")
+    return parts[0], parts[1]
+
+
+def _cell_faces(cells: np.ndarray, points: np.ndarray):
+    """All faces of the cells: corner keys (sorted), oriented corner faces, full faces, cell ids."""
+    m = len(cells)
+    corner = cells[:, :4]
+    faces = corner[:, _TET_FACES].reshape(-1, 3)  # (4m, 3)
+    opp = corner[np.arange(m)[:, None], _OPPOSITE[None, :]].reshape(-1)
+    p0, p1, p2 = points[faces[:, 0]], points[faces[:, 1]], points[faces[:, 2]]
+    normal = np.cross(p1 - p0, p2 - p0)
+    inward = np.einsum("ij,ij->i", normal, points[opp] - p0) > 0
+    local = np.tile(_TET_FACES, (m, 1))
+    local[inward] = local[inward][:, [0, 2, 1]]  # flip to point outward
+    cell_ids = np.repeat(np.arange(m), 4)
+    oriented = cells[cell_ids[:, None], local]
+    if cells.shape[1] == 10:
+        mids = np.empty((len(local), 3), dtype=int)
+        for j, (a, b) in enumerate([(0, 1), (1, 2), (2, 0)]):
+            la, lb = local[:, a], local[:, b]
+            lo, hi = np.minimum(la, lb), np.maximum(la, lb)
+            lut = np.zeros((4, 4), dtype=int)
+            for (i, k), v in _TET10_EDGE.items():
+                lut[i, k] = v
+            mids[:, j] = cells[cell_ids, lut[lo, hi]]
+        full = np.hstack([oriented, mids])
+    else:
+        full = oriented
+    keys = np.sort(oriented, axis=1)
+    return keys, full, cell_ids
+
+
+def _as_void(a: np.ndarray) -> np.ndarray:
+    a = np.ascontiguousarray(a.astype(np.int64))
+    return a.view(np.dtype((np.void, a.dtype.itemsize * a.shape[1]))).ravel()
+
+
+def interface_faces(mesh, regions_a, regions_b):
+    """Faces shared by a cell of regions_a and a cell of regions_b: (faces_a, faces_b) oriented
+    outward of each side."""
+    cells = np.asarray(mesh.cells)
+    ca = np.unique(np.concatenate([np.asarray(mesh.regions[r]) for r in regions_a]))
+    cb = np.unique(np.concatenate([np.asarray(mesh.regions[r]) for r in regions_b]))
+    ka, fa, _ = _cell_faces(cells[ca], mesh.points)
+    kb, fb, _ = _cell_faces(cells[cb], mesh.points)
+    _, ia, ib = np.intersect1d(_as_void(ka), _as_void(kb), assume_unique=False, return_indices=True)
+    return fa[ia], fb[ib]
+
+
+def split_interfaces(mesh, names) -> tuple[object, list[SplitInterface]]:
+    """Duplicate the nodes of each named interface on its side b (the second group).
+
+    Returns a new mesh of the same dataclass type (points appended, side-b cells and side-b faces of
+    the named surfaces renumbered) and one SplitInterface per name. Raises InputError for a name that
+    is malformed, names a group without regions, or two groups that share no face.
+    """
+    points = np.asarray(mesh.points, dtype=float).copy()
+    cells = np.asarray(mesh.cells).copy()
+    surfaces = {k: np.asarray(v).copy() for k, v in mesh.surfaces.items()}
+    out: list[SplitInterface] = []
+    seen = set()
+    for name in names:
+        ga, gb = parse_interface_name(name)
+        if name in seen:
+            raise InputError("interfaces", f"interface {name!r} given twice")
+        seen.add(name)
+        ra, rb = group_regions(mesh, ga), group_regions(mesh, gb)
+        for g, r in ((ga, ra), (gb, rb)):
+            if not r:
+                raise InputError(
+                    "interfaces",
+                    f"interface {name!r}: no region matches {g!r}; regions in the mesh: {sorted(mesh.regions)}",
+                )
+        if set(ra) & set(rb):
+            raise InputError("interfaces", f"interface {name!r}: both sides contain {sorted(set(ra) & set(rb))}")
+        current = dataclasses.replace(mesh, points=points, cells=cells)
+        faces_a, faces_b = interface_faces(current, ra, rb)
+        if len(faces_a) == 0:
+            raise InputError(
+                "interfaces",
+                f"interface {name!r} does not exist in the mesh: regions {ra} and {rb} share no face",
+            )
+        nodes = np.unique(faces_a)
+        new = np.arange(len(points), len(points) + len(nodes))
+        remap = np.arange(len(points))
+        remap[nodes] = new
+        points = np.vstack([points, points[nodes]])
+        cb = np.unique(np.concatenate([np.asarray(mesh.regions[r]) for r in rb]))
+        # named surfaces: faces that lie on a side-b cell (and not on side a) follow side b
+        if surfaces:
+            kb, _, _ = _cell_faces(cells[cb], points)
+            ca = np.unique(np.concatenate([np.asarray(mesh.regions[r]) for r in ra]))
+            ka, _, _ = _cell_faces(cells[ca], points)
+            vb, va = _as_void(kb), _as_void(ka)
+            for key, f in surfaces.items():
+                if len(f) == 0:
+                    continue
+                fk = _as_void(np.sort(f[:, :3], axis=1))
+                move = np.isin(fk, vb) & ~np.isin(fk, va)
+                f[move] = remap[f[move]]
+        cells[cb] = remap[cells[cb]]
+        # earlier interfaces whose side lies in these regions follow the new node ids
+        for k, prev in enumerate(out):
+            if set(prev.regions_a) <= set(rb):
+                prev = dataclasses.replace(prev, faces_a=remap[prev.faces_a], nodes_a=remap[prev.nodes_a])
+            if set(prev.regions_b) <= set(rb):
+                prev = dataclasses.replace(prev, faces_b=remap[prev.faces_b], nodes_b=remap[prev.nodes_b])
+            out[k] = prev
+        out.append(
+            SplitInterface(
+                name=name,
+                regions_a=ra,
+                regions_b=rb,
+                faces_a=faces_a,
+                faces_b=remap[faces_b],
+                nodes_a=nodes,
+                nodes_b=new,
+            )
+        )
+    new_mesh = dataclasses.replace(mesh, points=points, cells=cells, surfaces=surfaces)
+    return new_mesh, out
+
+
+def triangles(faces: np.ndarray) -> np.ndarray:
+    """Linear triangles of (k,3) or (k,6) faces (a triangle6 is cut into four)."""
+    faces = np.asarray(faces)
+    if faces.shape[1] == 3:
+        return faces
+    a, b, c, ab, bc, ca = faces.T
+    return np.vstack(
+        [np.c_[a, ab, ca], np.c_[ab, b, bc], np.c_[ca, bc, c], np.c_[ab, bc, ca]]
+    )

@@ -1,0 +1,268 @@
+"""The needle-tissue-bone FE model: geometry -> mesh -> FElupe solve (needletissue.fem) -> results.
+
+Bonded interfaces (one conforming mesh); bone far faces (bottom and sides) fixed; tissue far faces
+(the muscle and adipose sides) fixed, because the tissue continues there and is tethered to the pelvis
+(the far boundary is far enough that this choice changes the needle result by less than the mesh error,
+docs/needle_model.md); skin free. The reduction force is a dead load spread uniformly over the
+gripper faces of the clamp. Needle, clamp, bone: compressible Neo-Hooke from E, nu (paper Table 2);
+muscle MR5 and adipose Ogden nearly incompressible (P2/P0 mixed elements on quadratic tets).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from needletissue.errors import InputError, check_number
+from needletissue.geometry.needle import NeedleGeometry, mesh_needle_model
+
+MATERIALS = {
+    "cortical_bone": "cortical_bone", "cancellous_bone": "cancellous_bone", "muscle": "muscle",
+    "adipose": "adipose", "needle_1": "needle", "needle_2": "needle", "clamp": "clamp",
+}
+TISSUE_FAR = ("fixed", "free")
+
+
+@dataclass(frozen=True)
+class NeedleModelConfig:
+    """Inputs of one needle model run. Forces in N, direction a unit-free vector (normalised)."""
+
+    geometry: NeedleGeometry = field(default_factory=NeedleGeometry)
+    forces: tuple[float, ...] = (100.0, 200.0, 300.0)   # N, solved as one load path
+    direction: tuple[float, float, float] = (0.0, 1.0, 0.0)  # default lateral: perpendicular to the
+    #                                                  needles and to their plane (y)
+    order: int = 2                                     # 2: quadratic tets (linear ones lock in bending)
+    formulation: str = "mixed"                         # tissue P2/P0 (nearly incompressible)
+    tissue_far: str = "fixed"                          # "fixed" | "free": muscle/adipose far faces
+    solver: str = "auto"
+    ritz: bool = True                                  # compare with the Rayleigh-Ritz model
+    progress: bool = False
+
+    def __post_init__(self):
+        if not isinstance(self.geometry, NeedleGeometry):
+            raise InputError("geometry", "must be a NeedleGeometry")
+        if len(self.forces) == 0:
+            raise InputError("forces", "give at least one force (N)")
+        f = [check_number("forces", v, gt=0) for v in self.forces]
+        if any(b <= a for a, b in zip(f, f[1:])):
+            # one load path: the solver needs strictly increasing load factors
+            object.__setattr__(self, "forces", tuple(sorted(set(f))))
+        else:
+            object.__setattr__(self, "forces", tuple(f))
+        d = np.asarray([check_number("direction", v) for v in self.direction], dtype=float)
+        if d.shape != (3,) or np.linalg.norm(d) == 0:
+            raise InputError("direction", f"must be a non-zero 3-vector, got {self.direction!r}")
+        object.__setattr__(self, "direction", tuple(float(x) for x in d / np.linalg.norm(d)))
+        if self.order not in (1, 2):
+            raise InputError("order", f"must be 1 or 2, got {self.order!r}")
+        if self.formulation not in ("displacement", "mixed"):
+            raise InputError("formulation", f"must be 'displacement' or 'mixed', got {self.formulation!r}")
+        if self.tissue_far not in TISSUE_FAR:
+            raise InputError("tissue_far", f"must be one of {TISSUE_FAR}, got {self.tissue_far!r}")
+
+
+@dataclass
+class DeflectionCurve:
+    """Needle axis in the reference configuration and its displacement (mm)."""
+
+    z_mm: np.ndarray               # axial position, 0 = bone surface, from -depth to free_length
+    deflection_mm: np.ndarray      # displacement along the force direction
+    displacement_mm: np.ndarray    # (k, 3) full displacement
+
+
+@dataclass
+class NeedleLoadResult:
+    force_N: float
+    max_needle_deformation_mm: float   # max |u| over the needle nodes (the paper's "maximum deformation")
+    clamp_displacement_mm: float       # |mean u| over the gripper faces (where the robot holds)
+    max_deformation_mm: dict[str, float]
+    needle_end_deflection_mm: dict[str, float]   # axis end (z = l), along the force direction
+    curves: dict[str, DeflectionCurve]
+    newton_iterations: int
+    steps: int
+    ritz_tip_deflection_mm: float | None = None
+    theory_fe_difference_mm: float | None = None
+    ritz_force_per_needle_tip_deflection_mm: float | None = None
+    fe: object = field(default=None, repr=False)   # the FEResult (displacements, stresses)
+    ritz: tuple = field(default=(), repr=False)    # RitzResult at the full force and per needle
+
+    def to_dict(self) -> dict:
+        return {
+            "force_N": self.force_N,
+            "max_needle_deformation_mm": self.max_needle_deformation_mm,
+            "clamp_displacement_mm": self.clamp_displacement_mm,
+            "max_deformation_mm": self.max_deformation_mm,
+            "ritz_tip_deflection_mm": self.ritz_tip_deflection_mm,
+            "theory_fe_difference_mm": self.theory_fe_difference_mm,
+            "ritz_force_per_needle_tip_deflection_mm": self.ritz_force_per_needle_tip_deflection_mm,
+            "needle_end_deflection_mm": self.needle_end_deflection_mm,
+            "newton_iterations": self.newton_iterations,
+            "steps": self.steps,
+            "reaction_forces_N": {k: np.asarray(v).tolist() for k, v in self.fe.reaction_forces.items()}
+            if self.fe is not None else {},
+            "deflection_curves": {k: {"z_mm": c.z_mm.tolist(), "deflection_mm": c.deflection_mm.tolist()}
+                                  for k, c in self.curves.items()},
+        }
+
+
+@dataclass
+class NeedleModelResult:
+    config: NeedleModelConfig
+    mesh: dict                     # nodes, tetrahedra (+ quadratic nodes, per-region counts, quality)
+    wall_time_s: float
+    results: list[NeedleLoadResult]
+    timing_s: dict = field(default_factory=dict)
+    files: dict[str, str] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {
+            "mesh": self.mesh,
+            "wall_time_s": self.wall_time_s,
+            "timing_s": self.timing_s,
+            "results": [r.to_dict() for r in self.results],
+            "files": self.files,
+        }
+
+
+def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Path | None = None, *,
+                     mesh_path: str | Path | None = None, items=(), mesh_hook=None) -> NeedleModelResult:
+    """Mesh, solve every force of `config.forces` on one load path, post-process; with `out_dir`
+    write the mesh, one VTU per force, results.json, config.toml, versions.json and the figures.
+
+    Hooks for the frictional-contact model: `mesh_hook(TaggedMesh) -> TaggedMesh` runs on the mesh
+    before the FE model is built (e.g. to split the interface surfaces); `items` is a sequence of
+    extra FElupe items or a callable `items(FEModel) -> sequence` (built once the model exists).
+    """
+    import tempfile
+
+    from needletissue.fem import Fixed, FEModel, SurfaceForce, TaggedMesh, solve
+
+    cfg = config or NeedleModelConfig()
+    g = cfg.geometry
+    t0 = time.perf_counter()
+    ritz = _ritz_tips(cfg) if cfg.ritz else {}   # first: cheap, and fails fast on bad input
+    with tempfile.TemporaryDirectory() as tmp:
+        msh = Path(mesh_path) if mesh_path else (Path(out_dir) / "needle_model.msh" if out_dir
+                                                else Path(tmp) / "needle_model.msh")
+        info = mesh_needle_model(g, msh, order=cfg.order)  # order 2: midside nodes on the true cylinder
+        mesh = TaggedMesh.read(msh)
+    t_mesh = time.perf_counter() - t0
+    if mesh_hook is not None:
+        mesh = mesh_hook(mesh)
+    mesh.check(regions=g.regions(), surfaces=("bone_fixed", "tissue_far", "gripper"))
+    model = FEModel(mesh, {r: MATERIALS[r] for r in mesh.regions}, order=cfg.order,
+                    formulation=cfg.formulation)
+    fmax = max(cfg.forces)
+    bcs = [Fixed("bone_fixed")]
+    if cfg.tissue_far == "fixed":
+        bcs.append(Fixed("tissue_far"))
+    bcs.append(SurfaceForce("gripper", total=tuple(fmax * np.asarray(cfg.direction))))
+    extra = tuple(items(model) if callable(items) else items)
+    fe_results = solve(model, bcs, load_factors=[f / fmax for f in cfg.forces], solver=cfg.solver,
+                       items=extra, progress=cfg.progress)
+    t_solve = time.perf_counter() - t0 - t_mesh
+
+    used = model.mesh                         # tetra10 when order=2
+    axes = _axis_nodes(used.points, g)
+    gripper_nodes = used.surface_nodes("gripper")
+    results = []
+    for f, r in zip(cfg.forces, fe_results):
+        u = r.displacement
+        needle_max = max(r.max_displacement_by_region[k] for k in r.max_displacement_by_region
+                         if k.startswith("needle"))
+        curves = {name: DeflectionCurve(z, u[idx] @ np.asarray(cfg.direction), u[idx])
+                  for name, (idx, z) in axes.items()}
+        res = NeedleLoadResult(
+            force_N=f, max_needle_deformation_mm=float(needle_max),
+            clamp_displacement_mm=float(np.linalg.norm(u[gripper_nodes].mean(axis=0))),
+            max_deformation_mm={k: float(v) for k, v in r.max_displacement_by_region.items()},
+            needle_end_deflection_mm={k: float(c.deflection_mm[-1]) for k, c in curves.items()},
+            curves=curves, newton_iterations=r.newton_iterations, steps=r.steps, fe=r)
+        if f in ritz:
+            res.ritz_tip_deflection_mm = ritz[f]["full"]
+            res.ritz_force_per_needle_tip_deflection_mm = ritz[f]["per_needle"]
+            res.theory_fe_difference_mm = float(needle_max - ritz[f]["full"])
+            res.ritz = (ritz[f]["full_result"], ritz[f]["per_needle_result"])
+        results.append(res)
+    stats = mesh.stats()
+    mesh_summary = {"nodes": int(info.nodes), "tetrahedra": int(info.tetrahedra),
+                    "quadratic_nodes": int(len(used.points)), "order": cfg.order, "dofs": int(model.ndof),
+                    "tetrahedra_by_region": info.region_tetrahedra,
+                    "min_quality_sicn": info.min_quality, "min_quality_mean_ratio": stats.get("min_quality")}
+    out = NeedleModelResult(cfg, mesh_summary, time.perf_counter() - t0, results,
+                            timing_s={"mesh": t_mesh, "solve": t_solve})
+    if out_dir is not None:
+        write_outputs(out, Path(out_dir))
+    return out
+
+
+def _axis_nodes(points: np.ndarray, g: NeedleGeometry) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Mesh nodes on each needle axis (embedded in the mesh), sorted by z."""
+    if not g.axis_points:
+        raise InputError("axis_points", "the deflection curve needs the needle axes embedded (axis_points=True)")
+    tol = 1e-6 * g.diameter
+    out = {}
+    for i, x in enumerate(g.needle_x):
+        idx = np.flatnonzero((np.abs(points[:, 0] - x) < tol) & (np.abs(points[:, 1]) < tol)
+                             & (points[:, 2] >= -g.depth - tol) & (points[:, 2] <= g.free_length + tol))
+        idx = idx[np.argsort(points[idx, 2])]
+        out[f"needle_{i + 1}"] = (idx, points[idx, 2].copy())
+    return out
+
+
+def ritz_model(g: NeedleGeometry):
+    """The Rayleigh-Ritz model with the FE model's needle and layers: needle clamped at the bone
+    surface, free length l = geometry.free_length, force at the gripper centre z3, paper Table 1 k."""
+    from needletissue.ritz import DEFAULT_LAYERS, RitzModel
+
+    k = {la.name: la.k_N_per_mm2 for la in DEFAULT_LAYERS}
+    layers = tuple(type(DEFAULT_LAYERS[0])(n, t, k[n]) for n, t in
+                   (("muscle", g.muscle_thickness), ("adipose", g.adipose_thickness)))
+    return RitzModel(diameter_mm=g.diameter, free_length_mm=g.free_length, layers=layers,
+                     load_point_mm=g.gripper_centre)
+
+
+def _ritz_tips(cfg: NeedleModelConfig) -> dict[float, dict[str, object]]:
+    """Ritz solutions at the full force (the paper's comparison) and at the force per needle."""
+    from needletissue.ritz import solve
+
+    model = ritz_model(cfg.geometry)
+    out = {}
+    for f in cfg.forces:
+        full = solve(f, model)
+        per = solve(f / cfg.geometry.needles, model)
+        out[f] = {"full": float(full.tip_deflection_mm), "per_needle": float(per.tip_deflection_mm),
+                  "full_result": full, "per_needle_result": per}
+    return out
+
+
+def write_outputs(result: NeedleModelResult, out_dir: Path) -> None:
+    """VTU per force, results.json + config.toml + versions.json, figures (deformed model, curves)."""
+    from needletissue.runinfo import write_run_files
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    files = {"mesh": "needle_model.msh"}
+    for r in result.results:
+        name = f"needle_{r.force_N:g}N.vtu"
+        r.fe.write_vtu(out_dir / name)
+        files[f"vtu_{r.force_N:g}N"] = name
+    from needletissue.fem.needle_plot import plot_deflection_curves, plot_deformed
+
+    files["figure_deformed"] = plot_deformed(result, out_dir / "needle_deformed.png").name
+    files["figure_deflection"] = plot_deflection_curves(result, out_dir / "needle_deflection.png").name
+    result.files = files
+    write_run_files(out_dir, {"needle_model": _config_dict(result.config)}, result.to_dict())
+
+
+def _config_dict(cfg: NeedleModelConfig) -> dict:
+    from dataclasses import asdict
+
+    return asdict(cfg)
+
+
+def with_geometry(cfg: NeedleModelConfig, **changes) -> NeedleModelConfig:
+    """A copy of cfg with geometry fields changed (validated)."""
+    return replace(cfg, geometry=replace(cfg.geometry, **changes))

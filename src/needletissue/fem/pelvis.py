@@ -1,0 +1,397 @@
+"""The paper's anatomical model: hemipelvis with soft tissues, two needles, a clamp, 100/200/300 N.
+
+config (PelvisConfig) -> geometry.pelvis (labels, site, mesh) -> FEModel + BCs -> solve -> PelvisResult.
+
+Boundary conditions (paper Sec. 3.1, "fixed proximal femoral section, superior surface of the sacrum and
+the sacroiliac joint"):
+  femur_fixed       all components fixed on the femur's section at the crop's bottom plane
+  sacrum_fixed      all components fixed on the superior sacral surface (boundary within 6 mm of its top)
+  sacroiliac_joint  `si_joint="fixed"` (paper): the ilium's auricular surface (hip-bone faces touching or
+                    within 1.5 voxels of the sacrum) is fixed; `"bonded"`: only the shared nodes of
+                    touching hip/sacrum elements tie the bones (gaps stay open)
+  midline           u_x = 0 on the medial crop plane (mirror symmetry of the other hemipelvis)
+  gripper           the reduction force, spread uniformly over the clamp bar's two side faces (the robot's
+                    jaws; same convention as the `needle` branch), resultant at the clamp's mid-height
+Everything else is bonded (one conforming mesh: the paper's frictional interfaces are the `contact`
+branch's subject).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from needletissue.errors import InputError, check_number
+
+PAPER = {
+    "forces_N": [100.0, 200.0, 300.0],
+    "max_needle_deformation_mm": [5.8152, 10.8990, 18.0620],
+    "ritz_tip_deflection_mm_300N": 17.63,
+    "theory_fe_difference_mm_300N": 0.432,
+    "adipose_max_deformation_mm_300N": 7.45,
+    "ranking_300N": ["adipose", "iliacus", "gluteus_medius", "gluteus_maximus"],
+    "soft_tissue_thickness_mm": {"muscle": 22.0, "adipose": 10.0, "patients_mean": 31.82, "patients_sd": 5.43},
+    "elements": 1329469,
+}
+
+MATERIALS = {
+    "hip_cortical": "cortical_bone",
+    "hip_cancellous": "cancellous_bone",
+    "sacrum": "cancellous_bone",  # mostly trabecular; fixed on two faces, so it barely matters
+    "femur": "cortical_bone",  # the proximal shaft section carrying the fixed boundary is cortical
+    "gluteus_maximus": "muscle",
+    "gluteus_medius": "muscle",
+    "gluteus_minimus": "muscle",
+    "iliopsoas": "muscle",
+    "body_wall": "muscle",
+    "adipose": "adipose",
+    "needle_1": "needle",
+    "needle_2": "needle",
+    "clamp": "clamp",
+}
+
+
+@dataclass
+class PelvisConfig:
+    """Inputs of the anatomical model. Lengths mm, forces N.
+
+    source          "ct" (ct + labels NIfTI; default the example CT) or "ssm" (mean SSM bone surfaces)
+    side            hemipelvis carrying the needles: "right" (default) or "left"
+    site            "supra_acetabular" (default) or "iliac_crest" (geometry.pelvis.standard_site)
+    entries         optional (2,3) needle entry points (snapped along the axis to the bone surface)
+    direction       optional (3,) needle direction into the bone
+    needle_diameter, depth_in_bone, clamp_gap   mm
+    forces          reduction forces on the clamp, N
+    force_direction (3,) direction of the reduction force (patient RAS; default inferior = traction);
+                    with project_force=True its component along the needle axis is removed
+    mesh_size       soft-tissue element size next to the needles, mm (paper: 3)
+    needle_size     needle element size, mm (default 2*mesh_size/3; quadratic tets)
+    far_size        element size far (refine_radius) from the needles, mm (default 4*mesh_size)
+    order           2 (tetra10; needles need it in bending) or 1
+    si_joint        "fixed" (paper) or "bonded"
+    """
+
+    source: str = "ct"
+    ct: str | None = None
+    labels: str | None = None
+    side: str = "right"
+    site: str = "supra_acetabular"
+    entries: list | None = None
+    direction: list | None = None
+    needle_diameter: float = 5.0
+    depth_in_bone: float = 40.0
+    clamp_gap: float = 20.0
+    forces: list = field(default_factory=lambda: [100.0, 200.0, 300.0])
+    force_direction: list = field(default_factory=lambda: [0.0, 0.0, -1.0])
+    project_force: bool = True
+    mesh_size: float = 3.0
+    needle_size: float | None = None
+    far_size: float | None = None
+    refine_radius: float = 35.0
+    cortical_thickness: float = 1.5
+    ssm_spacing: float = 2.0
+    order: int = 2
+    formulation: str = "displacement"
+    si_joint: str = "fixed"
+    solver: str = "auto"
+    out: str | None = None
+    figures: bool = True
+    progress: bool = False
+    crosscheck_thickness: bool = True  # CT only: thickness again with the img branch's segmentation
+
+    def __post_init__(self):
+        if self.source not in ("ct", "ssm"):
+            raise InputError("source", f"must be 'ct' or 'ssm', got {self.source!r}")
+        if self.si_joint not in ("fixed", "bonded"):
+            raise InputError("si_joint", f"must be 'fixed' or 'bonded', got {self.si_joint!r}")
+        if not self.forces:
+            raise InputError("force", "give at least one force (N), e.g. --force 100 --force 200 --force 300")
+        self.forces = sorted(check_number("force", f, gt=0, le=5000) for f in self.forces)
+        if len(set(self.forces)) != len(self.forces):
+            raise InputError("force", f"forces must be distinct, got {self.forces}")
+        check_number("mesh_size", self.mesh_size, ge=0.5, le=20)
+        d = np.asarray(self.force_direction, float)
+        if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
+            raise InputError("force_direction", f"must be a non-zero 3-vector, got {self.force_direction}")
+        if self.order not in (1, 2):
+            raise InputError("order", f"must be 1 or 2, got {self.order}")
+
+
+@dataclass
+class LoadResult:
+    force_N: float
+    max_needle_deformation_mm: float
+    clamp_displacement_mm: float
+    max_deformation_mm: dict
+    ritz_tip_deflection_mm: float | None
+    theory_fe_difference_mm: float | None
+    needle_max_deformation_mm: dict
+    newton_iterations: int
+    reactions_N: dict = field(default_factory=dict)
+    vtu: str | None = None
+
+
+@dataclass
+class PelvisResult:
+    mesh: dict
+    wall_time_s: float
+    results: list
+    ranking: list
+    thickness: list
+    site: dict
+    force_vector_unit: list
+    boundary_conditions: dict
+    notes: list
+    comparison: list
+    timing_s: dict
+    ritz: dict
+    thickness_img: list = field(default_factory=list)
+    figures: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        from needletissue.runinfo import to_jsonable
+
+        return to_jsonable(asdict(self))
+
+
+def build(config: PelvisConfig):
+    """Labels, needle site and the linear conforming mesh for `config` (geometry.pelvis.PelvisMesh)."""
+    from needletissue.geometry import pelvis as gp
+
+    if config.source == "ct":
+        vol = gp.ct_label_volume(config.ct, config.labels, side=config.side)
+    else:
+        vol = gp.ssm_label_volume(side=config.side, spacing=config.ssm_spacing)
+    kw = dict(diameter=config.needle_diameter, depth_in_bone=config.depth_in_bone, clamp_gap=config.clamp_gap)
+    if config.entries is not None or config.direction is not None:
+        base = gp.standard_site(vol, config.site, **kw)
+        site = gp.NeedleSite(
+            entries=base.entries if config.entries is None else np.asarray(config.entries, float),
+            direction=base.direction if config.direction is None else np.asarray(config.direction, float),
+            name="custom", **kw)
+        site = gp.snap_entries(vol, site)
+    else:
+        site = gp.standard_site(vol, config.site, **kw)
+    vol = gp.crop_to_site(vol, site)
+    mesh = gp.build_mesh(vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size,
+                         far_size=config.far_size, cortical_thickness=config.cortical_thickness,
+                         refine_radius=config.refine_radius)
+    return vol, mesh
+
+
+def force_unit(config: PelvisConfig, site) -> np.ndarray:
+    d = np.asarray(config.force_direction, float)
+    d = d / np.linalg.norm(d)
+    if config.project_force:
+        a = site.direction
+        d = d - (d @ a) * a
+        if np.linalg.norm(d) < 1e-6:
+            raise InputError("force_direction", "is parallel to the needles; give a transverse direction")
+        d = d / np.linalg.norm(d)
+    return d
+
+
+def ritz_prediction(config: PelvisConfig, paths, free_length: list, load_point: list, forces) -> dict:
+    """Rayleigh-Ritz (paper Eqs. 8-15, `needletissue.ritz`) for each needle with its measured layers:
+    muscle-like tissue (k = 0.048) next to the bone, adipose (k = 0.023) outside it, as in the paper's
+    two-layer model (Table 1 stiffnesses); l = bone entry to the needle's end in the clamp, z3 = clamp
+    mid-height (where the resultant of the uniform clamp load acts)."""
+    from needletissue import ritz
+
+    out = {"model": "two-layer Rayleigh-Ritz, cubic trial function (paper Eq. 13); the whole force F on "
+                    "each needle as in the paper's comparison, and F/2 for reference", "per_needle": []}
+    for p, l, z3 in zip(paths, free_length, load_point):
+        layers = [ritz.Layer(n, t, k) for n, t, k in (("muscle", p.muscle_mm, 0.048), ("adipose", p.adipose_mm, 0.023))
+                  if t > 0]
+        model = ritz.RitzModel(diameter_mm=config.needle_diameter, free_length_mm=l, layers=tuple(layers),
+                               load_point_mm=z3)
+        res = ritz.solve_forces(forces, model)
+        half = ritz.solve_forces([f / 2 for f in forces], model)  # if the two needles share F equally
+        out["per_needle"].append({"model": model.to_dict(), "tip_deflection_mm": [r.tip_deflection_mm for r in res],
+                                  "max_deflection_mm": [r.max_deflection_mm for r in res],
+                                  "max_deflection_half_force_mm": [r.max_deflection_mm for r in half]})
+    return out
+
+
+def thickness_crosscheck(config: PelvisConfig, pm) -> list:
+    """Soft-tissue thickness along each needle from the `img` branch's own segmentation and path walk
+    (needletissue.imaging.segment + geometry.thickness.thickness_along, LPS frame): an independent
+    check of geometry.pelvis.needle_paths. The path enters 10 mm outside our skin exit."""
+    from needletissue.geometry.pelvis import data_dir
+    from needletissue.geometry.thickness import thickness_along
+    from needletissue.imaging.segment import SegmentationConfig, segment
+
+    d = None if config.ct else data_dir() / "pelvis_ct"
+    ct = config.ct or d / "example_ct.nii.gz"
+    labels = config.labels or d / "example_seg_fast_force_split.nii.gz"
+    # split on the CT grid itself: the thickness needs bone vs soft tissue only, and the 0.75 mm split
+    # grid took ~4 GB more memory
+    seg = segment(ct, labels, SegmentationConfig(split_spacing=3.0))
+    ras_to_lps = np.array([-1.0, -1.0, 1.0])
+    out = []
+    for i, p in enumerate(pm.paths):
+        r = thickness_along(seg, (p.skin_exit - 10.0 * pm.site.direction) * ras_to_lps,
+                            pm.site.direction * ras_to_lps)
+        bone = None if r.bone_point is None else np.asarray(r.bone_point) * ras_to_lps
+        out.append({"needle": f"needle_{i + 1}", "total_mm": r.soft_tissue_thickness_mm,
+                    "by_tissue_mm": r.thickness_by_tissue,
+                    "bone_point_distance_mm": None if bone is None else float(np.linalg.norm(bone - p.entry)),
+                    "ours_total_mm": p.total_mm})
+    return out
+
+
+def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
+    """Build, solve and report the anatomical model; writes VTU, figures and run files to config.out."""
+    from needletissue.fem import FEModel, Fixed, PrescribedDisplacement, SurfaceForce, TaggedMesh, solve
+
+    if config is None:
+        config = PelvisConfig()
+    elif isinstance(config, dict):
+        config = PelvisConfig(**config)
+    t0 = time.perf_counter()
+    c0 = time.process_time()
+    vol, pm = build(config)
+    t_mesh = time.perf_counter() - t0
+    tm = TaggedMesh(pm.points, pm.cells, pm.regions, pm.surfaces)
+    tm.check(regions=["needle_1", "needle_2", "clamp", "hip_cortical"],
+             surfaces=["femur_fixed", "sacrum_fixed", "sacroiliac_joint", "gripper", "midline"])
+    if config.order == 2:
+        from needletissue.geometry.pelvis import curve_needles
+
+        q = tm.to_quadratic()
+        q.points = curve_needles(q.points, q.cells, q.regions, pm.needle_axes, pm.site.diameter / 2)
+        tm_solve = q
+    else:
+        tm_solve = tm
+    model = FEModel(tm_solve, {r: MATERIALS[r] for r in tm.regions}, order=config.order,
+                    formulation=config.formulation)
+    t_model = time.perf_counter() - t0 - t_mesh
+    fdir = force_unit(config, pm.site)
+    fmax = config.forces[-1]
+    bcs = [PrescribedDisplacement("midline", value=(0.0, None, None))]
+    bcs += [Fixed("femur_fixed"), Fixed("sacrum_fixed")]
+    if config.si_joint == "fixed":
+        bcs.append(Fixed("sacroiliac_joint"))
+    bcs.append(SurfaceForce("gripper", total=tuple(fmax * fdir)))
+    factors = [f / fmax for f in config.forces]
+    fe = solve(model, bcs, load_factors=factors, solver=config.solver, progress=config.progress)
+    t_solve = time.perf_counter() - t0 - t_mesh - t_model
+
+    qm = model.mesh
+    # exposed needle length: bone entry to the clamp's mid-height (where the resultant acts)
+    h_clamp = pm.site.clamp_size[0]
+    a_out = -pm.site.direction
+    exposed = [float((top - e) @ a_out) for e, (_, top) in zip(pm.site.entries, pm.needle_axes)]
+    ritz = ritz_prediction(config, pm.paths, exposed, [x - h_clamp / 2 for x in exposed], config.forces)
+    # the FE reports the larger of the two needles' maxima: compare with the larger Ritz deflection
+    ritz_tip = [max(n["max_deflection_mm"][i] for n in ritz["per_needle"]) for i in range(len(config.forces))]
+
+    out_dir = Path(config.out) if config.out else None
+    loads = []
+    gripper_nodes = np.unique(qm.surfaces["gripper"])  # |mean u| over the gripper, as `fe needle`
+    for f, r, rt in zip(config.forces, fe, ritz_tip):
+        by = {k: float(v) for k, v in r.max_displacement_by_region.items()}
+        needles = {k: by[k] for k in ("needle_1", "needle_2")}
+        nmax = max(needles.values())
+        clamp_u = float(np.linalg.norm(r.displacement[gripper_nodes].mean(axis=0)))
+        vtu = None
+        if out_dir is not None:
+            vtu = str(r.write_vtu(out_dir / f"pelvis_{int(round(f))}N.vtu"))
+        loads.append(LoadResult(f, nmax, clamp_u, by, rt, None if rt is None else abs(rt - nmax), needles,
+                                r.newton_iterations, {k: np.asarray(v).tolist() for k, v in r.reaction_forces.items()},
+                                vtu))
+    from needletissue.geometry.pelvis import SOFT_TISSUES
+
+    last = loads[-1].max_deformation_mm
+    ranking = sorted((t for t in SOFT_TISSUES if t in last), key=lambda t: -last[t])
+    thickness = [dict(needle=f"needle_{i + 1}", entry_mm=p.entry, skin_exit_mm=p.skin_exit, muscle_mm=p.muscle_mm,
+                      adipose_mm=p.adipose_mm, total_mm=p.total_mm, exposed_length_mm=exposed[i],
+                      layers=[dict(tissue=n, from_mm=a, to_mm=b) for n, a, b in p.layers])
+                 for i, p in enumerate(pm.paths)]
+    res = PelvisResult(
+        mesh={"nodes": int(len(qm.points)), "tetrahedra": int(len(qm.cells)), "order": config.order,
+              "linear_nodes": int(len(pm.points)),
+              "cells_by_region": {k: int(len(v)) for k, v in qm.regions.items()},
+              "dofs": int(model.ndof), "min_quality": float(tm.quality().min())},
+        wall_time_s=time.perf_counter() - t0,
+        results=loads,
+        ranking=ranking,
+        thickness=thickness,
+        site={"name": pm.site.name, "entries_mm": pm.site.entries, "direction": pm.site.direction,
+              "needle_diameter_mm": pm.site.diameter, "depth_in_bone_mm": pm.site.depth_in_bone,
+              "clamp_gap_mm": pm.site.clamp_gap, "clamp_size_mm": pm.site.clamp_size,
+              "needle_axes_mm": pm.needle_axes, "source": vol.source, "side": vol.side},
+        force_vector_unit=fdir,
+        boundary_conditions={"femur_fixed": "fixed", "sacrum_fixed": "fixed",
+                             "sacroiliac_joint": config.si_joint, "midline": "u_x = 0 (symmetry)",
+                             "gripper": "uniform surface force on the clamp's side faces (dead load)",
+                             "interfaces": "bonded (one conforming mesh)"},
+        notes=pm.notes,
+        comparison=[],
+        timing_s={"mesh": t_mesh, "model": t_model, "solve": t_solve, "cpu_s": time.process_time() - c0},
+        ritz=ritz,
+    )
+    if config.source == "ct" and config.crosscheck_thickness:
+        res.thickness_img = thickness_crosscheck(config, pm)
+    res.comparison = comparison_table(res)
+    if out_dir is not None:
+        from needletissue.runinfo import write_json, write_run_files
+
+        pm_m = pm.to_meshio()
+        import meshio
+
+        out_dir.mkdir(parents=True, exist_ok=True)
+        meshio.write(out_dir / "pelvis_mesh.vtu", pm_m)
+        res.wall_time_s = time.perf_counter() - t0
+        from needletissue.fem.pelvis_report import comparison_markdown, render_in_subprocess
+        from needletissue.runinfo import write_atomic
+
+        write_atomic(out_dir / "pelvis_comparison.md", comparison_markdown(res))
+        write_run_files(out_dir, asdict(config), res.to_dict())
+        write_json(out_dir / "pelvis_results.json", res.to_dict())
+        if config.figures:  # after the results are safe: a VTK crash must not lose them
+            res.figures = render_in_subprocess(out_dir)
+            write_json(out_dir / "pelvis_results.json", res.to_dict())
+    return res
+
+
+def comparison_table(res: PelvisResult) -> list:
+    """Our numbers beside the paper's, one row per quantity, with the reason for the difference."""
+    rows = []
+    by_force = {r.force_N: r for r in res.results}
+    for f, p in zip(PAPER["forces_N"], PAPER["max_needle_deformation_mm"]):
+        if f in by_force:
+            v = by_force[f].max_needle_deformation_mm
+            rows.append(dict(quantity=f"max needle deformation at {f:.0f} N (mm)", ours=v, paper=p,
+                             difference=v - p, relative=(v - p) / p))
+    r300 = by_force.get(300.0)
+    if r300 is not None:
+        if r300.ritz_tip_deflection_mm is not None:
+            rows.append(dict(quantity="Ritz tip deflection at 300 N (mm)", ours=r300.ritz_tip_deflection_mm,
+                             paper=PAPER["ritz_tip_deflection_mm_300N"],
+                             difference=r300.ritz_tip_deflection_mm - PAPER["ritz_tip_deflection_mm_300N"]))
+            rows.append(dict(quantity="theory-FE difference at 300 N (mm)", ours=r300.theory_fe_difference_mm,
+                             paper=PAPER["theory_fe_difference_mm_300N"],
+                             difference=r300.theory_fe_difference_mm - PAPER["theory_fe_difference_mm_300N"]))
+        a = r300.max_deformation_mm.get("adipose")
+        if a is not None:
+            rows.append(dict(quantity="adipose max deformation at 300 N (mm)", ours=a,
+                             paper=PAPER["adipose_max_deformation_mm_300N"],
+                             difference=a - PAPER["adipose_max_deformation_mm_300N"]))
+    paper_names = {"iliacus": "iliopsoas"}
+    ours_rank = [t for t in res.ranking if t in ("adipose", "iliopsoas", "gluteus_medius", "gluteus_maximus")]
+    rows.append(dict(quantity="ranking of the paper's four tissues (largest first)", ours=ours_rank,
+                     paper=[paper_names.get(t, t) for t in PAPER["ranking_300N"]],
+                     difference="same order" if ours_rank == [paper_names.get(t, t) for t in PAPER["ranking_300N"]]
+                     else "different order"))
+    for t in res.thickness:
+        rows.append(dict(quantity=f"soft tissue along {t['needle']} (mm): muscle / adipose / total",
+                         ours=[t["muscle_mm"], t["adipose_mm"], t["total_mm"]],
+                         paper=[22.0, 10.0, PAPER["soft_tissue_thickness_mm"]["patients_mean"]],
+                         difference=t["total_mm"] - PAPER["soft_tissue_thickness_mm"]["patients_mean"]))
+    rows.append(dict(quantity="tetrahedra", ours=res.mesh["tetrahedra"], paper=PAPER["elements"],
+                     difference=res.mesh["tetrahedra"] - PAPER["elements"]))
+    return rows

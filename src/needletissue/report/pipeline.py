@@ -1,0 +1,252 @@
+"""`needletissue reproduce`: an explicit list of stages, each config -> (result dataclass, figures, files).
+
+The whole run is written into a hidden temporary folder beside ``--out`` and renamed into place at the
+end, so an interrupted run never leaves a folder that looks finished. ``results.json`` is written
+last inside it; the folder also holds the completion marker ``.needletissue-reproduce``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from needletissue.errors import InputError
+from needletissue.report.config import ReproduceConfig, annotated_toml
+from needletissue.report.paper import PAPER
+from needletissue.runinfo import to_jsonable, write_atomic, write_json, versions
+
+MARKER = ".needletissue-reproduce"
+
+
+@dataclass
+class Comparison:
+    """One reproduced number beside the paper's value (when the paper gives one)."""
+
+    quantity: str
+    ours: float | str
+    unit: str
+    paper_key: str | None = None
+    note: str = ""
+
+    @property
+    def paper(self):
+        return PAPER[self.paper_key].value if self.paper_key else None
+
+    @property
+    def difference(self):
+        if self.paper is None or not isinstance(self.ours, (int, float)):
+            return None
+        return self.ours - self.paper
+
+    @property
+    def relative_percent(self):
+        d = self.difference
+        return None if d is None or self.paper == 0 else 100.0 * d / self.paper
+
+    def to_json(self) -> dict:
+        return {"quantity": self.quantity, "ours": self.ours, "unit": self.unit, "paper": self.paper,
+                "difference": self.difference, "relative_difference_percent": self.relative_percent,
+                "paper_source": PAPER[self.paper_key].source if self.paper_key else None, "note": self.note}
+
+
+@dataclass
+class StageResult:
+    """What a stage returns: its result dataclass, figures and data files (paths in the run folder)."""
+
+    data: Any
+    figures: list[Path] = field(default_factory=list)
+    files: list[Path] = field(default_factory=list)
+    comparisons: list[Comparison] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Stage:
+    name: str
+    title: str
+    run: Callable[[ReproduceConfig, "StageContext"], StageResult]
+    enabled: Callable[[ReproduceConfig, "StageContext"], tuple[bool, str]]
+    # Run in a child process: a crash in native code (mesher, sparse solver, VTK) then fails this
+    # stage only instead of the whole run. The function must be importable (module level).
+    isolated: bool = False
+
+
+def _run_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext") -> StageResult:
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
+        fut = pool.submit(stage.run, cfg, StageContext(ctx.run_dir, ctx.ct, ctx.labels))
+        try:
+            return fut.result()
+        except BrokenProcessPool:
+            raise RuntimeError(f"the {stage.name} stage's process died (a crash in native code, e.g. a "
+                               "segmentation fault, or killed for memory)") from None
+
+
+@dataclass
+class StageContext:
+    """Where a stage writes (its own sub-folder of the run folder) and run-wide inputs."""
+
+    run_dir: Path
+    ct: Path | None = None
+    labels: Path | None = None
+    previous: dict[str, StageResult] = field(default_factory=dict)
+
+    def stage_dir(self, name: str) -> Path:
+        d = self.run_dir / name
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
+
+@dataclass
+class StageOutcome:
+    name: str
+    title: str
+    status: str  # ok | skipped | failed
+    wall_time_s: float
+    reason: str = ""
+    result: StageResult | None = None
+
+
+@dataclass
+class ReproduceResult:
+    out_dir: Path
+    outcomes: list[StageOutcome]
+    wall_time_s: float
+
+    @property
+    def ok(self) -> bool:
+        return all(o.status != "failed" for o in self.outcomes)
+
+
+def _check_out(out: Path) -> None:
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / MARKER).exists())):
+        raise InputError("--out", f"{out} exists and is not a needletissue reproduce folder; "
+                         "give a new or empty folder")
+
+
+def run_reproduce(cfg: ReproduceConfig, out: str | Path, stages: list[Stage], *, ct: Path | None = None,
+                  labels: Path | None = None, progress: bool = True) -> ReproduceResult:
+    """Run the enabled stages in order into a temporary folder, write the report, rename into ``out``."""
+    from needletissue.report.html import write_report
+
+    out = Path(out).resolve()
+    _check_out(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the result folder should not be
+    t0 = time.perf_counter()
+    outcomes: list[StageOutcome] = []
+    try:
+        ctx = StageContext(run_dir=tmp, ct=ct, labels=labels)
+        with _StageProgress(stages, progress) as bar:
+            for stage in stages:
+                on, reason = stage.enabled(cfg, ctx)
+                if not on:
+                    outcomes.append(StageOutcome(stage.name, stage.title, "skipped", 0.0, reason))
+                    bar.finish(stage, "skipped", reason)
+                    continue
+                bar.start(stage)
+                ts = time.perf_counter()
+                try:
+                    res = _run_isolated(stage, cfg, ctx) if stage.isolated else stage.run(cfg, ctx)
+                except Exception as exc:  # a failed stage is reported; the others still run
+                    dt = time.perf_counter() - ts
+                    msg = f"{type(exc).__name__}: {exc}"
+                    outcomes.append(StageOutcome(stage.name, stage.title, "failed", dt,
+                                                 msg + "\n" + traceback.format_exc(limit=6)))
+                    bar.finish(stage, "failed", msg)
+                    continue
+                dt = time.perf_counter() - ts
+                ctx.previous[stage.name] = res
+                outcomes.append(StageOutcome(stage.name, stage.title, "ok", dt, result=res))
+                bar.finish(stage, "ok", f"{dt:.1f} s")
+        result = ReproduceResult(out, outcomes, time.perf_counter() - t0)
+        write_atomic(tmp / "config.toml", annotated_toml(cfg))
+        write_json(tmp / "versions.json", versions())
+        write_report(tmp, cfg, result)
+        write_json(tmp / "results.json", results_json(cfg, result, tmp))
+        write_atomic(tmp / MARKER, f"complete {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
+        _swap(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return result
+
+
+def _swap(tmp: Path, out: Path) -> None:
+    """Replace out by tmp. Between the two renames out is absent, never half-written."""
+    old = None
+    if out.exists():
+        old = out.parent / f".{out.name}.old-{time.time_ns()}"
+        out.rename(old)
+    tmp.rename(out)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def results_json(cfg: ReproduceConfig, result: ReproduceResult, run_dir: Path) -> dict:
+    def rel(p):
+        return str(Path(p).relative_to(run_dir)) if Path(p).is_absolute() else str(p)
+
+    stages = {}
+    for o in result.outcomes:
+        entry = {"title": o.title, "status": o.status, "wall_time_s": o.wall_time_s}
+        if o.reason:
+            entry["reason"] = o.reason
+        if o.result is not None:
+            entry["result"] = to_jsonable(o.result.data)
+            entry["figures"] = [rel(p) for p in o.result.figures]
+            entry["files"] = [rel(p) for p in o.result.files]
+            entry["notes"] = o.result.notes
+        stages[o.name] = entry
+    comparisons = [c.to_json() for o in result.outcomes if o.result for c in o.result.comparisons]
+    return {"wall_time_s": result.wall_time_s, "ok": result.ok, "stages": stages,
+            "comparison_with_paper": comparisons}
+
+
+class _StageProgress:
+    """One Rich progress line per stage: spinner while it runs, then ok / skipped / failed."""
+
+    def __init__(self, stages: list[Stage], enabled: bool):
+        self.p = None
+        if enabled:
+            from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+            self.p = Progress(SpinnerColumn(finished_text="•"), TextColumn("{task.description}"),
+                              TextColumn("{task.fields[status]}"), TimeElapsedColumn())
+            self.ids = {s.name: self.p.add_task(s.title, total=1, start=False, status="[dim]waiting")
+                        for s in stages}
+
+    def __enter__(self):
+        if self.p:
+            self.p.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self.p:
+            self.p.__exit__(*exc)
+
+    def start(self, stage: Stage):
+        if self.p:
+            self.p.start_task(self.ids[stage.name])
+            self.p.update(self.ids[stage.name], status="[yellow]running")
+
+    def finish(self, stage: Stage, status: str, text: str):
+        if self.p:
+            colour = {"ok": "green", "skipped": "dim", "failed": "red"}[status]
+            from rich.markup import escape
+
+            short = escape(text.splitlines()[0][:60]) if text else ""
+            self.p.update(self.ids[stage.name], completed=1, status=f"[{colour}]{status}[/{colour}] {short}")
+            self.p.stop_task(self.ids[stage.name])

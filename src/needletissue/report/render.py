@@ -1,0 +1,86 @@
+"""Report figures drawn from results the engines wrote (no physics here): an off-screen render of a
+deformed VTU, and maximum needle deformation against force (FE, Ritz, the paper's values)."""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+
+from needletissue.report.paper import PAPER
+from needletissue.runinfo import write_atomic
+
+
+def render_vtu(vtu: str | Path, png: str | Path, title: str, scale: float = 1.0) -> Path:
+    """Outer surface of the deformed mesh (true scale unless `scale`), coloured by |u| in mm."""
+    os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+    import pyvista as pv
+
+    grid = pv.read(str(vtu))
+    u = np.asarray(grid.point_data["displacement"])
+    grid.point_data["|u| (mm)"] = np.linalg.norm(u, axis=1)
+    surf = grid.extract_surface(nonlinear_subdivision=0)
+    surf = surf.warp_by_vector("displacement", factor=scale)
+    p = pv.Plotter(off_screen=True, window_size=(1200, 900))
+    p.add_mesh(surf, scalars="|u| (mm)", cmap="viridis", show_edges=False)
+    p.add_text(title, font_size=10)
+    p.view_isometric()
+    tmp = Path(png).with_name(f".{Path(png).stem}.partial.png")
+    p.screenshot(str(tmp))
+    p.close()
+    write_atomic(png, tmp.read_bytes())
+    tmp.unlink()
+    return Path(png)
+
+
+def plot_theory_vs_fe(results: list[dict], path: str | Path, title: str, dpi: int = 110) -> Path:
+    """Maximum needle deformation (FE) and Ritz tip deflection against force, with the paper's values
+    (FE 5.8152 / 10.8990 / 18.0620 mm, Ritz 17.63 mm at 300 N) as markers: the paper's Fig. 12 analogue."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    f = [r["force_N"] for r in results]
+    fig, ax = plt.subplots(figsize=(5.6, 4))
+    ax.plot(f, [r["max_needle_deformation_mm"] for r in results], "o-", label="FE, max needle deformation")
+    ritz = [r.get("ritz_tip_deflection_mm") for r in results]
+    if any(v is not None for v in ritz):
+        ax.plot(f, [np.nan if v is None else v for v in ritz], "s--", label="Ritz, tip deflection")
+    pf = [100.0, 200.0, 300.0]
+    ax.plot(pf, [PAPER[f"fe_max_needle_deformation_{x:g}N_mm"].value for x in pf], "kx", ms=8,
+            label="paper FE (Sec. 3.3)")
+    ax.plot([300.0], [PAPER["ritz_tip_deflection_300N_mm"].value], "k+", ms=10, label="paper Ritz (Sec. 2.3)")
+    ax.set_xlabel("reduction force (N)")
+    ax.set_ylabel("needle deformation (mm)")
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    return write_atomic(path, buf.getvalue())
+
+
+def isolated(fn, *args):
+    """Run fn(*args) in a fresh process: a crash in VTK's native code cannot take the caller down."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
+        try:
+            return pool.submit(fn, *args).result()
+        except BrokenProcessPool:
+            raise RuntimeError(f"{getattr(fn, '__name__', fn)} crashed (native code)") from None
+
+
+def try_render(vtu, png, title, notes: list, figures: list) -> None:
+    """Render in a child process; on a crash add a note instead of a figure."""
+    try:
+        figures.append(isolated(render_vtu, vtu, png, title))
+    except Exception as exc:  # the numbers stand without the picture
+        notes.append(f"render of {Path(vtu).name} failed: {exc}")

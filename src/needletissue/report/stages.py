@@ -1,0 +1,293 @@
+"""The stages of `needletissue reproduce`. Each takes the resolved config and a StageContext and returns a
+StageResult (its result dataclass, figures, files, and numbers to set beside the paper's).
+
+Stages call the public functions of the engine packages; nothing here computes physics.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+from needletissue.report.config import ReproduceConfig
+from needletissue.report.paper import PAPER_RANKING, fe_key
+from needletissue.report.pipeline import Comparison, Stage, StageContext, StageResult
+
+
+def _on(section):
+    def enabled(cfg: ReproduceConfig, ctx: StageContext):
+        return (True, "") if getattr(cfg, section).enabled else (False, f"disabled in config ([{section}] enabled = false)")
+    return enabled
+
+
+# --- materials: closed-form stress-stretch curves (paper Fig. 3 style) -----------------------------
+
+
+@dataclass
+class MaterialCurves:
+    curves: list[dict]  # the `materials curve --json` contract, one per material
+
+
+def materials_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
+    from needletissue.materials import curves, plot
+
+    c = cfg.materials
+    d = ctx.stage_dir("materials")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        data = MaterialCurves([curves.curve(n, "uniaxial", c.stretch_max, c.points).to_json() for n in c.names])
+    fig = d / "stress_stretch_uniaxial.png"
+    plot.plot_curves(tuple(c.names), "uniaxial", stretch_max=c.stretch_max, out=fig)
+    import matplotlib.pyplot as plt
+
+    plt.close("all")
+    notes = [f"{x['material']}: {x['model']}, Drucker-stable in uniaxial stretch "
+             f"[{x['stable_range'][0]:.3g}, {x['stable_range'][1]:.3g}]" for x in data.curves]
+    notes += [f"warning: {w.message}" for w in caught]
+    return StageResult(data, figures=[fig], notes=notes)
+
+
+# --- traction validation: FE tissue block vs closed form (paper Sec. 3.2, Eq. 16) -------------------
+
+
+@dataclass
+class TractionValidation:
+    results: list[dict]  # fem.traction.TractionResult.to_dict per tissue
+
+
+def traction_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
+    from needletissue.fem import traction
+
+    d = ctx.stage_dir("traction")
+    results, figs, comps = [], [], []
+    for m in cfg.traction.materials:
+        r = traction.run(traction.TractionConfig(material=m))
+        fig = d / f"traction_{m}.png"
+        traction.plot(r, fig)
+        results.append(r.to_dict())
+        figs.append(fig)
+        comps.append(Comparison(f"Traction validation RMSE, {m} (Eq. 16)", r.rmse_MPa, "MPa",
+                                f"traction_rmse_{m}_MPa", "criterion < 0.05 MPa"))
+    notes = [f"{r['material']}: RMSE {r['rmse_MPa']:.3g} MPa over {len(r['displacement_mm'])} points, "
+             f"max relative error {r['max_relative_error']:.2g}" for r in results]
+    return StageResult(TractionValidation(results), figures=figs, comparisons=comps, notes=notes)
+
+
+# --- Rayleigh-Ritz needle model at 100/200/300 N (paper Fig. 5) ------------------------------------
+
+
+@dataclass
+class RitzCurves:
+    model: dict  # every parameter used (RitzModel.to_dict)
+    order: int | str
+    results: list[dict]  # the `ritz --json` contract per force
+    curves: dict  # force -> {"z_mm": [...], "v_mm": [...]}
+
+
+def ritz_model(cfg: ReproduceConfig):
+    from needletissue.ritz import Layer, RitzModel
+
+    r = cfg.ritz
+    return RitzModel(diameter_mm=r.diameter_mm, free_length_mm=r.free_length_mm,
+                     youngs_modulus_MPa=r.youngs_modulus_MPa, cos_term=r.use_cos,
+                     layers=tuple(Layer(la.name, la.thickness_mm, la.k_N_per_mm2) for la in r.layers))
+
+
+def ritz_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
+    from needletissue.ritz import plot_deflection, solve_forces
+
+    model = ritz_model(cfg)
+    res = solve_forces(cfg.ritz.forces_N, model, order=cfg.ritz.order)
+    d = ctx.stage_dir("ritz")
+    fig = plot_deflection(res, d / "ritz_deflection_fig5.png", model=model)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    curves = {}
+    for r in res:
+        z, v = r.curve(101)
+        curves[f"{r.force_N:g}"] = {"z_mm": z, "v_mm": v}
+    data = RitzCurves(model.to_dict(), cfg.ritz.order, [r.to_json() for r in res], curves)
+    by_force = {r.force_N: r for r in res}
+    comps = [Comparison(f"Ritz tip deflection at {r.force_N:g} N", r.tip_deflection_mm, "mm",
+                        "ritz_tip_deflection_300N_mm" if r.force_N == 300.0 else None) for r in res]
+    if 100.0 in by_force and 300.0 in by_force:
+        inc = 100.0 * (by_force[300.0].tip_deflection_mm / by_force[100.0].tip_deflection_mm - 1.0)
+        comps.append(Comparison("Ritz tip deflection increase, 300 N over 100 N", inc, "%",
+                                "ritz_increase_300_vs_100N_percent",
+                                "+200 % is the most any positive parameters give (w is sub-linear in F; docs/ritz.md)"))
+    notes = [f"needle d = {model.diameter_mm:g} mm, free length l = {model.free_length_mm:g} mm, "
+             f"E = {model.youngs_modulus_MPa:g} MPa, order {cfg.ritz.order}, "
+             f"v/cos(theta) {'on' if model.cos_term else 'off'}"]
+    return StageResult(data, figures=[d / "ritz_deflection_fig5.png"],
+                       comparisons=comps, notes=notes)
+
+
+# --- per-tissue deformation bar chart (results of an FE stage; plotting only) ----------------------
+
+
+def plot_region_deformation(results: list[dict], path, title: str, dpi: int = 110):
+    """Grouped bars: maximum displacement (mm) of every region at every force."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from needletissue.runinfo import write_atomic
+
+    regions = sorted({k for r in results for k in r["max_deformation_mm"]},
+                     key=lambda k: -results[-1]["max_deformation_mm"].get(k, 0.0))
+    x = np.arange(len(regions))
+    w = 0.8 / max(1, len(results))
+    fig, ax = plt.subplots(figsize=(max(6, 0.9 * len(regions) + 2), 4))
+    for i, r in enumerate(results):
+        ax.bar(x + (i - (len(results) - 1) / 2) * w, [r["max_deformation_mm"].get(k, np.nan) for k in regions],
+               w, label=f"{r['force_N']:g} N")
+    ax.set_xticks(x, regions, rotation=30, ha="right")
+    ax.set_ylabel("maximum deformation |u| (mm)")
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=8)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    return write_atomic(path, buf.getvalue())
+
+
+# --- parametric needle-tissue-bone FE model (theory vs FE) ----------------------------------------
+
+
+@dataclass
+class NeedleFE:
+    result: dict  # fem.needle.NeedleModelResult.to_dict (the `fe needle --json` contract)
+
+
+def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
+    from needletissue.fem.needle import NeedleModelConfig, run_needle_model
+    from needletissue.fem.needle_plot import plot_deflection_curves
+    from needletissue.geometry.needle import NeedleGeometry
+    from needletissue.report.render import plot_theory_vs_fe, try_render
+
+    c = cfg.needle_fe
+    d = ctx.stage_dir("needle_fe")
+    geom = NeedleGeometry(needles=c.needles, diameter=c.diameter_mm, free_length=c.free_length_mm,
+                          mesh_size=c.mesh_size_mm, needle_mesh_size=c.needle_mesh_size_mm,
+                          far_mesh_size=c.far_mesh_size_mm)
+    # No out_dir: the model's own writer renders with VTK in this process; we write VTU and figures
+    # here and render in a child process (a VTK crash then costs a picture, not the results).
+    res = run_needle_model(NeedleModelConfig(geometry=geom, forces=tuple(c.forces_N)))
+    data = res.to_dict()
+    files = []
+    for r in res.results:
+        files.append(d / f"needle_{r.force_N:g}N.vtu")
+        r.fe.write_vtu(files[-1])
+    notes = [f"mesh: {res.mesh['tetrahedra']:,} tetrahedra (order {res.mesh['order']}, {res.mesh['dofs']:,} dofs), "
+             f"wall time {res.wall_time_s:.1f} s"]
+    figs = [plot_deflection_curves(res, d / "needle_deflection_theory_vs_fe.png"),
+            plot_theory_vs_fe(data["results"], d / "needle_max_deformation_vs_force.png",
+                              f"Needle FE model ({c.needles} needle(s)) vs Ritz and the paper", cfg.report.dpi),
+            plot_region_deformation(data["results"], d / "needle_fe_region_deformation.png",
+                                    f"Needle FE model: maximum deformation per region", cfg.report.dpi)]
+    try_render(files[-1], d / "needle_deformed.png", f"needle FE model, {res.results[-1].force_N:g} N "
+               "(true scale), |u| in mm", notes, figs)
+    comps = []
+    for r in res.results:
+        comps.append(Comparison(f"FE max needle deformation at {r.force_N:g} N (parametric model)",
+                                r.max_needle_deformation_mm, "mm", fe_key(r.force_N),
+                                "paper: anatomical model, two needles"))
+        if r.theory_fe_difference_mm is not None:
+            comps.append(Comparison(f"FE - theory difference at {r.force_N:g} N (parametric model)",
+                                    r.theory_fe_difference_mm, "mm",
+                                    "theory_fe_difference_300N_mm" if r.force_N == 300.0 else None,
+                                    "FE maximum needle deformation minus Ritz tip deflection (paper: "
+                                    "18.062 - 17.63)"))
+    return StageResult(NeedleFE(data), figures=figs, files=files, comparisons=comps, notes=notes)
+
+
+# --- anatomical pelvis model (needs ../shared/data, $NEEDLETISSUE_DATA or --ct) --------------------
+
+
+def shared_data_dir() -> Path | None:
+    """$NEEDLETISSUE_DATA, else <repo root>/../shared/data, when it exists."""
+    env = os.environ.get("NEEDLETISSUE_DATA")
+    cand = Path(env) if env else Path(__file__).resolve().parents[3].parent / "shared" / "data"
+    return cand if cand.is_dir() else None
+
+
+def _pelvis_enabled(cfg: ReproduceConfig, ctx: StageContext):
+    mode = cfg.pelvis.enabled
+    if mode == "off":
+        return False, "disabled in config ([pelvis] enabled = \"off\")"
+    if mode == "on" or ctx.ct is not None or cfg.pelvis.ct or cfg.pelvis.source == "ssm":
+        return True, ""
+    if shared_data_dir() is None:
+        return False, "no ../shared/data (or $NEEDLETISSUE_DATA) and no --ct: anatomical model skipped"
+    return True, ""
+
+
+@dataclass
+class PelvisFE:
+    result: dict  # fem.pelvis.PelvisResult.to_dict (the `fe pelvis --json` contract)
+
+
+def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
+    from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+
+    c = cfg.pelvis
+    d = ctx.stage_dir("pelvis")
+    ct = str(ctx.ct) if ctx.ct else (c.ct or None)
+    labels = str(ctx.labels) if ctx.labels else (c.labels or None)
+    from needletissue.report.render import plot_theory_vs_fe, try_render
+
+    # figures=False: the model's VTK section render runs in this process (it crashed once on a 4 mm
+    # mesh); we render the VTU it writes in a child process instead.
+    res = run_pelvis_model(PelvisConfig(source=c.source, ct=ct, labels=labels, forces=list(c.forces_N),
+                                        mesh_size=c.mesh_size_mm, out=str(d), figures=False))
+    data = res.to_dict()
+    files = sorted(d.glob("*.vtu"))
+    notes = [f"mesh: {res.mesh.get('tetrahedra', 0):,} tetrahedra, wall time {res.wall_time_s:.1f} s", *res.notes]
+    figs = [plot_theory_vs_fe(data["results"], d / "pelvis_max_deformation_vs_force.png",
+                              "Anatomical model vs Ritz and the paper", cfg.report.dpi),
+            plot_region_deformation(data["results"], d / "pelvis_region_deformation.png",
+                                    "Anatomical model: maximum deformation per tissue", cfg.report.dpi)]
+    last = d / f"pelvis_{res.results[-1].force_N:g}N.vtu"
+    if last.exists():
+        try_render(last, d / "pelvis_deformed.png", f"anatomical model, {res.results[-1].force_N:g} N "
+                   "(true scale), |u| in mm", notes, figs)
+    comps = []
+    for r in res.results:
+        comps.append(Comparison(f"FE max needle deformation at {r.force_N:g} N (anatomical model)",
+                                r.max_needle_deformation_mm, "mm", fe_key(r.force_N)))
+        if r.force_N == 300.0:
+            if r.theory_fe_difference_mm is not None:
+                comps.append(Comparison("|FE - theory| difference at 300 N (anatomical model)",
+                                        r.theory_fe_difference_mm, "mm", "theory_fe_difference_300N_mm"))
+            if "adipose" in r.max_deformation_mm:
+                comps.append(Comparison("Adipose max deformation at 300 N (anatomical model)",
+                                        r.max_deformation_mm["adipose"], "mm", "adipose_max_deformation_300N_mm"))
+    paper_rank = " > ".join(PAPER_RANKING)
+    ours = [t for t in res.ranking if t in ("adipose", "iliopsoas", "iliacus", "gluteus_medius", "gluteus_maximus")]
+    comps.append(Comparison("Deformation ranking at the largest force", " > ".join(ours), "",
+                            note=f"paper (Sec. 3.3): {paper_rank} (iliacus is part of our iliopsoas)"))
+    for t in res.thickness:
+        comps.append(Comparison(f"Soft tissue along {t['needle']}", t["total_mm"], "mm",
+                                "soft_tissue_thickness_mean_mm", "paper: mean of 10 patients (+- 5.43 mm)"))
+    return StageResult(PelvisFE(data), figures=figs, files=files, comparisons=comps, notes=notes)
+
+
+def stage_list() -> list[Stage]:
+    """The stages `reproduce` runs, in order. A stage joins this list when its engine is merged."""
+    return [
+        Stage("materials", "Material curves (Fig. 3)", materials_stage, _on("materials")),
+        Stage("traction", "Traction validation (Sec. 3.2)", traction_stage,
+              _on("traction")),
+        Stage("ritz", "Ritz model, 100-300 N (Fig. 5)", ritz_stage, _on("ritz")),
+        Stage("needle_fe", "Needle FE model, theory vs FE", needle_fe_stage, _on("needle_fe"), isolated=True),
+        Stage("pelvis", "Anatomical pelvis model", pelvis_stage, _pelvis_enabled, isolated=True),
+    ]

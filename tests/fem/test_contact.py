@@ -1,0 +1,189 @@
+"""Verification of the frictional contact item (ipctk barrier + lagged smoothed friction).
+
+Expected values come from statics (Coulomb: tangential force = mu N while sliding; equilibrium: the
+contact transmits the applied load) and from the barrier's construction (interpenetration < dhat).
+"""
+
+import felupe as fem
+import numpy as np
+import pytest
+
+from needletissue.errors import ConvergenceError, InputError
+from needletissue.fem.contact import ContactSettings, resolve_interfaces
+from needletissue.fem.contact_mesh import split_interfaces
+from needletissue.fem.contact_verify import build_model, solve_steps, stacked_boxes
+
+DHAT = 1e-2
+EPS_V = 1e-3
+MU = 0.3
+LAG = "step"
+
+
+def _block_on_plane(h, mu, lag="iteration"):
+    """10 mm block (G = 1 MPa) on a 30 x 30 x 5 mm stiffer plate (G = 10 MPa), interface at z = 0."""
+    mesh = stacked_boxes({"plate": ((0, 0, -5), (30, 30, 0)), "block": ((10, 10, 0), (20, 20, 10))}, h)
+    mats = {"plate": fem.NeoHooke(mu=10.0, bulk=50.0), "block": fem.NeoHooke(mu=1.0, bulk=5.0)}
+    settings = ContactSettings(dhat=DHAT, youngs_modulus=3.0, eps_v=EPS_V, lag=lag)
+    return build_model(mesh, mats, {"plate-block": mu}, settings)
+
+
+def _top_nodes_and_weights(model, z):
+    X = model.field.region.mesh.points
+    top = np.flatnonzero(np.isclose(X[:, 2], z) & (X[:, 0] >= 10 - 1e-9) & (X[:, 0] <= 20 + 1e-9)
+                         & (X[:, 1] >= 10 - 1e-9) & (X[:, 1] <= 20 + 1e-9))
+    return X, top
+
+
+PRESS = 0.5  # mm, prescribed downward displacement of the block's top (about 15 N)
+
+
+def _slide(h, shear, mode, lag=LAG):
+    """Press the block's rigid top down by PRESS (a body held only by contact needs a displacement-
+    controlled normal: at zero gap the barrier is not yet active), then shear it (mode "disp":
+    prescribed ux in mm; mode "force": a total tangential force in N). Returns (model, solution,
+    top nodes, normal force N)."""
+    m = _block_on_plane(h, MU, lag)
+    X, top = _top_nodes_and_weights(m, 10.0)
+    u = m.field[0]
+    on_top = np.isin(np.arange(len(X)), top)
+    bnd = {
+        "bottom": fem.Boundary(u, mask=np.isclose(X[:, 2], -5)),
+        "top_yz": fem.Boundary(u, mask=on_top, skip=(1, 0, 0)),
+    }
+    if mode == "disp":
+        bnd["top_x"] = fem.Boundary(u, mask=on_top, skip=(0, 1, 1))
+    load = fem.PointLoad(m.field, top)
+    m.solids.append(load)
+    n = len(top)
+
+    def apply(t):
+        # first half of the ramp: press; second half: shear at full press
+        bnd["top_yz"].update(np.array([0.0, -PRESS * min(1.0, 2 * t)]))
+        s = shear * max(0.0, 2 * t - 1)
+        values = np.zeros((n, 3))
+        if mode == "force":
+            values[:, 0] = s / n
+        else:
+            bnd["top_x"].update(s)
+        load.update(values)
+
+    sol = solve_steps(m, bnd, apply, [0.5, 0.75, 1.0], initial_step=0.25, min_step=1 / 64)
+    r = sol.steps[-1].reaction.reshape(-1, 3)
+    normal = r[top, 2].sum()  # reaction on the prescribed top (pressing down: > 0 on the body)
+    return m, sol, top, abs(normal)
+
+
+def _slip_x(model, displacement):
+    itf = model.contact.surface.interfaces[0]
+    return (displacement[itf.nodes_b] - displacement[itf.nodes_a])[:, 0]
+
+
+def _slip(model, displacement):
+    itf = model.contact.surface.interfaces[0]
+    jump = displacement[itf.nodes_b] - displacement[itf.nodes_a]
+    return np.abs(jump[:, 0])
+
+
+def test_block_slides_at_mu_n_when_pushed_beyond_it():
+    """Displacement-controlled shear of 1.5 mm (> elastic shear of the block): tangential reaction
+    = mu N (Coulomb, within 3 %), the block slides (interface slip >> eps_v)."""
+    m, sol, top, N = _slide(2.5, 1.5, "disp")
+    assert N > 5.0
+    r = sol.steps[-1].reaction.reshape(-1, 3)
+    tangential = r[top, 0].sum()  # internal force at the prescribed dofs = applied shear
+    assert tangential / N == pytest.approx(MU, rel=0.03)
+    assert _slip(m, sol.steps[-1].displacement).min() > 100 * EPS_V
+
+
+def test_block_sticks_below_mu_n_and_fails_to_find_equilibrium_above():
+    """Force-controlled shear: 0.5 mu N is carried with slip of the order of eps_v (stick);
+    1.5 mu N has no static equilibrium: the solver cuts back and raises ConvergenceError."""
+    _, _, _, N = _slide(2.5, 0.0, "force")  # the normal force of the press alone
+    m, sol, _, n_sheared = _slide(2.5, 0.5 * MU * N, "force")
+    assert n_sheared == pytest.approx(N, rel=0.05)
+    # slip added by the shear (the press alone slides the rim outward: Poisson expansion); the
+    # rim may micro-slip (Cattaneo-Mindlin), the bulk of the interface sticks
+    added = _slip_x(m, sol.steps[-1].displacement) - _slip_x(m, sol.steps[0].displacement)
+    assert np.median(np.abs(added)) < 5 * EPS_V
+    with pytest.raises(ConvergenceError, match="load factor"):
+        _slide(2.5, 1.5 * MU * N, "force")
+
+
+def _pressed(h, friction, push=1.0):
+    """Two blocks (G = 10 and 1 MPa) pressed by a prescribed top displacement; x = 0 and y = 0 are
+    symmetry planes, the bottom slides on z = -5."""
+    mesh = stacked_boxes({"lower": ((0, 0, -5), (10, 10, 0)), "upper": ((0, 0, 0), (10, 10, 10))}, h)
+    mats = {"lower": fem.NeoHooke(mu=10, bulk=50), "upper": fem.NeoHooke(mu=1, bulk=5)}
+    m = build_model(mesh, mats, friction, ContactSettings(dhat=DHAT, youngs_modulus=3.0, eps_v=EPS_V))
+    X = m.field.region.mesh.points
+    u = m.field[0]
+    bnd = {
+        "x0": fem.Boundary(u, fx=0, skip=(0, 1, 1)),
+        "y0": fem.Boundary(u, fy=0, skip=(1, 0, 1)),
+        "bottom": fem.Boundary(u, fz=-5, skip=(1, 1, 0)),
+        "top": fem.Boundary(u, fz=10, skip=(1, 1, 0)),
+    }
+    sol = solve_steps(m, bnd, lambda t: bnd["top"].update(-push * t), [1.0], initial_step=0.5)
+    r = sol.steps[-1].reaction.reshape(-1, 3)
+    top, bottom = np.isclose(X[:, 2], 10), np.isclose(X[:, 2], -5)
+    return m, sol, r[top, 2].sum(), r[bottom, 2].sum()
+
+
+def test_pressed_blocks_transmit_the_normal_force_without_interpenetration():
+    m, sol, r_top, r_bottom = _pressed(2.5, {"lower-upper": MU})
+    # the whole load crosses the contact: equal and opposite reactions, and the contact forces on
+    # the upper block's collision vertices add up to the applied load
+    assert r_top < -10.0
+    assert r_bottom == pytest.approx(-r_top, rel=1e-6)
+    f = m.contact.contact_forces()
+    upper = m.contact.surface.side_b > 0
+    assert f[upper, 2].sum() == pytest.approx(-r_top, rel=1e-3)
+    # interpenetration (physical gap < 0) stays below dhat; the barrier never let it pass through
+    # (node pairs off the rim: at the rim the softer block bulges over the edge of the lower one)
+    itf = m.contact.surface.interfaces[0]
+    inner = np.all(m.mesh.points[itf.nodes_a, :2] < 10 - 1e-6, axis=1)
+    opening = m.contact.gap_opening(sol.steps[-1].displacement)["lower-upper"][inner]
+    assert opening.min() > -DHAT
+    assert opening.min() < 0  # the contact is loaded, so it is compressed into the barrier zone
+    assert sol.steps[-1].contact["max_interpenetration_mm"] < DHAT
+    # frictional contact is softer than a bonded interface (Poisson expansion is less restrained),
+    # stiffer than frictionless contact
+    _, _, r_bonded, _ = _pressed(2.5, None)
+    _, _, r_free, _ = _pressed(2.5, {"lower-upper": 0.0})
+    assert abs(r_free) < abs(r_top) < abs(r_bonded)
+
+
+def test_pressed_blocks_mesh_refinement():
+    """Halving the element size (5 -> 2.5 mm) changes the transmitted force by < 2 % (the area-weighted barrier is
+    a pressure law, so no mesh-dependent penalty)."""
+    _, _, r_coarse, _ = _pressed(5.0, {"lower-upper": MU})
+    _, _, r_fine, _ = _pressed(2.5, {"lower-upper": MU})
+    assert r_fine == pytest.approx(r_coarse, rel=0.02)
+
+
+def test_split_duplicates_only_the_interface_nodes():
+    mesh = stacked_boxes({"lower": ((0, 0, -5), (10, 10, 0)), "upper": ((0, 0, 0), (10, 10, 10))}, 2.5)
+    split, (itf,) = split_interfaces(mesh, ["lower-upper"])
+    n_interface = 5 * 5  # grid nodes on the 10 x 10 mm interface with h = 2.5
+    assert len(split.points) == len(mesh.points) + n_interface
+    assert np.allclose(split.points[itf.nodes_a], split.points[itf.nodes_b])
+    lower = set(np.unique(split.cells[split.regions["lower"]]))
+    upper = set(np.unique(split.cells[split.regions["upper"]]))
+    assert not lower & upper  # the bodies no longer share a node
+
+
+def test_bad_input_names_the_field():
+    mesh = stacked_boxes({"lower": ((0, 0, -5), (10, 10, 0)), "upper": ((0, 0, 0), (10, 10, 10))}, 5.0)
+    with pytest.raises(InputError, match="interfaces"):
+        resolve_interfaces(mesh, "paper", {"lower-upper": -0.1})
+    with pytest.raises(InputError, match="does not exist"):
+        resolve_interfaces(mesh, "paper", {"needle-muscle": 0.3})
+    with pytest.raises(InputError, match="bonded"):
+        resolve_interfaces(mesh, "glued")
+    with pytest.raises(InputError, match="no region"):
+        split_interfaces(mesh, ["lower-bone"])
+    with pytest.raises(InputError, match="dhat"):
+        ContactSettings(dhat=0)
+    assert resolve_interfaces(mesh, "bonded") == {}
+    assert resolve_interfaces(mesh, "paper") == {}  # no needle, muscle or bone in this mesh
+    assert resolve_interfaces(mesh, "bonded", {"upper-lower": 0.5}) == {"upper-lower": 0.5}

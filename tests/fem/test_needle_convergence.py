@@ -1,0 +1,21 @@
+"""Richardson extrapolation against closed forms."""
+
+import pytest
+
+from needletissue.errors import InputError
+from needletissue.fem.needle_convergence import richardson
+
+
+@pytest.mark.parametrize("p, r", [(2.0, 2.0), (1.3, 1.4), (3.0, 1.5)])
+def test_recovers_order_and_limit_of_power_law(p, r):
+    f0, C, h = 17.5, -3.0, 2.0
+    f = [f0 + C * (h / r**k) ** p for k in range(3)]
+    fit = richardson(*f, ratio=r)
+    assert fit.order == pytest.approx(p, rel=1e-9)
+    assert fit.extrapolated == pytest.approx(f0, rel=1e-12)
+    assert fit.fine_error_estimate == pytest.approx(abs(C) * (h / r**2) ** p, rel=1e-9)
+
+
+def test_oscillating_levels_rejected():
+    with pytest.raises(InputError):
+        richardson(1.0, 1.2, 1.1, ratio=1.4)

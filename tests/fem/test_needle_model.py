@@ -1,0 +1,132 @@
+"""Needle-tissue-bone FE model on a coarse mesh: output contract, symmetry, equilibrium, and the shear
+force in each needle's exposed segment from Euler-Bernoulli (EI v''' = -V), i.e. the force sharing."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import meshio
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from needletissue.cli import app
+from needletissue.fem.needle import NeedleModelConfig, run_needle_model
+from needletissue.geometry.needle import NeedleGeometry
+from needletissue.materials import get
+
+COARSE_CLI = ["--needle-mesh-size", "2.5", "--mesh-size", "8", "--far-mesh-size", "30"]
+COARSE = dict(needle_mesh_size=2.5, mesh_size=8.0, far_mesh_size=30.0)
+F_SMALL = 10.0   # N: small enough that the needle response is linear (deflection << length)
+
+
+@pytest.fixture(scope="module")
+def cli_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("needle_cli")
+    res = CliRunner().invoke(app, ["fe", "needle", "--force", str(F_SMALL), "--force", str(2 * F_SMALL),
+                                   *COARSE_CLI, "--out", str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    return json.loads(res.stdout), out
+
+
+HOOK_CALLS = []
+
+
+@pytest.fixture(scope="module")
+def one_needle():
+    cfg = NeedleModelConfig(geometry=NeedleGeometry(needles=1, **COARSE), forces=(F_SMALL,), tissue_far="free")
+
+    def mesh_hook(mesh):
+        HOOK_CALLS.append(("mesh", set(mesh.surfaces)))
+        return mesh
+
+    def items(model):
+        HOOK_CALLS.append(("items", model.ndof))
+        return ()
+
+    return run_needle_model(cfg, mesh_hook=mesh_hook, items=items)
+
+
+def test_contact_hooks_see_the_named_interfaces(one_needle):
+    (k1, surfaces), (k2, ndof) = HOOK_CALLS
+    assert (k1, k2) == ("mesh", "items") and ndof > 0
+    assert {"needle_muscle", "needle_bone", "muscle_bone"} <= surfaces
+
+
+def _shear_from_curve(z, v, g):
+    """-EI v''' from a cubic fit over the exposed needle, one diameter clear of the skin and clamp."""
+    lo, hi = g.tissue_thickness + g.diameter, g.free_length - g.grip_length - g.diameter
+    sel = (z > lo) & (z < hi)
+    c3 = np.polyfit(z[sel], v[sel], 3)[0]
+    EI = get("needle").parameters["E"] * math.pi * g.diameter ** 4 / 64
+    return -6 * c3 * EI
+
+
+def test_json_contract_and_files(cli_run):
+    data, out = cli_run
+    assert set(data["mesh"]) >= {"nodes", "tetrahedra"} and data["wall_time_s"] > 0
+    assert [r["force_N"] for r in data["results"]] == [F_SMALL, 2 * F_SMALL]
+    for r in data["results"]:
+        assert {"force_N", "max_needle_deformation_mm", "clamp_displacement_mm", "max_deformation_mm",
+                "ritz_tip_deflection_mm", "theory_fe_difference_mm"} <= set(r)
+        assert set(r["max_deformation_mm"]) == {"cortical_bone", "cancellous_bone", "muscle", "adipose",
+                                                "needle_1", "needle_2", "clamp"}
+        assert r["theory_fe_difference_mm"] == pytest.approx(
+            r["max_needle_deformation_mm"] - r["ritz_tip_deflection_mm"])
+    for name in ("results.json", "config.toml", "versions.json", "needle_10N.vtu", "needle_20N.vtu",
+                 "needle_deformed.png", "needle_deflection.png", "needle_model.msh"):
+        assert (out / name).stat().st_size > 0, name
+    vtu = meshio.read(out / "needle_20N.vtu")
+    assert "region" in vtu.cell_data and "displacement" in vtu.point_data
+    assert json.loads((out / "results.json").read_text())["results"][0]["force_N"] == F_SMALL
+
+
+def test_two_needles_mirror_symmetric_and_share_the_force(cli_run):
+    """The model is mirror-symmetric about x = 0 and the force (y) too: both needles deflect alike and
+    each carries exactly F/2 as shear in its exposed segment."""
+    data, _ = cli_run
+    g = NeedleGeometry(**COARSE)
+    for r in data["results"]:
+        c = r["deflection_curves"]
+        e1, e2 = r["needle_end_deflection_mm"]["needle_1"], r["needle_end_deflection_mm"]["needle_2"]
+        assert e1 == pytest.approx(e2, rel=2e-2)
+        for name in ("needle_1", "needle_2"):
+            V = _shear_from_curve(np.array(c[name]["z_mm"]), np.array(c[name]["deflection_mm"]), g)
+            assert V == pytest.approx(r["force_N"] / 2, rel=0.01), name
+
+
+def test_small_load_response_is_linear(cli_run):
+    data, _ = cli_run
+    a, b = data["results"]
+    assert b["max_needle_deformation_mm"] == pytest.approx(2 * a["max_needle_deformation_mm"], rel=0.02)
+
+
+def test_equilibrium_of_supports(one_needle):
+    """With free tissue far faces the bone far faces hold the whole applied force: reaction = -F.
+    (With both supports fixed they share nodes on the bone-tissue edge, counted in both sums.)"""
+    r = one_needle.results[0]
+    np.testing.assert_allclose(r.fe.reaction_forces["bone_fixed"], [0, -F_SMALL, 0], atol=1e-6 * F_SMALL)
+
+
+def test_one_needle_carries_the_whole_force(one_needle):
+    g = one_needle.config.geometry
+    r = one_needle.results[0]
+    c = r.curves["needle_1"]
+    assert _shear_from_curve(c.z_mm, c.deflection_mm, g) == pytest.approx(F_SMALL, rel=0.01)
+    assert set(r.max_deformation_mm) == {"cortical_bone", "cancellous_bone", "muscle", "adipose", "needle_1", "clamp"}
+    # The clamp is held by the needle: its displacement is the needle's at the grip, below the needle max.
+    assert 0 < r.clamp_displacement_mm <= r.max_needle_deformation_mm * 1.001
+
+
+def test_bad_cli_input_is_one_line_exit_2():
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", "fe", "needle",
+                        "--diameter", "5", "--spacing", "4"], capture_output=True, text=True)
+    assert p.returncode == 2
+    assert "spacing" in p.stderr and "Traceback" not in p.stderr
+    p = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", "fe", "needle",
+                        "--force", "-100"], capture_output=True, text=True)
+    assert p.returncode == 2 and "forces" in p.stderr

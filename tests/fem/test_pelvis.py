@@ -1,0 +1,208 @@
+"""Anatomical pelvis model: labels, needle site, conforming mesh, and a coarse solve.
+
+Needs ../shared/data (or $NEEDLETISSUE_DATA): the tests fail with a clear message when it is absent.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from needletissue.errors import InputError
+from needletissue.geometry import pelvis as gp
+
+pytestmark = pytest.mark.data
+
+
+@pytest.fixture(scope="module")
+def vol():
+    try:
+        return gp.ct_label_volume()
+    except InputError as exc:  # fail, never skip: CI has the data
+        pytest.fail(f"pelvis data missing: {exc}")
+
+
+@pytest.fixture(scope="module")
+def site(vol):
+    return gp.standard_site(vol, "supra_acetabular")
+
+
+@pytest.fixture(scope="module")
+def coarse(vol, site):
+    v = gp.crop_to_site(vol, site)
+    return gp.build_mesh(v, site, mesh_size=6.0, needle_size=3.0, far_size=18.0)
+
+
+def test_missing_data_is_a_clear_error(tmp_path, monkeypatch):
+    monkeypatch.setenv("NEEDLETISSUE_DATA", str(tmp_path / "nowhere"))
+    with pytest.raises(InputError, match="data folder not found"):
+        gp.ct_label_volume()
+
+
+def test_labels_are_one_hemipelvis(vol):
+    counts = np.bincount(vol.labels.ravel(), minlength=10)
+    assert all(counts[t] > 0 for t in gp.TISSUES), counts
+    # the crop starts at the sacrum's mid-sagittal plane: the sacrum is cut by the medial face, and the
+    # medial face holds about half of the sacrum's width (it is not at the sacrum's edge)
+    sac_x = np.nonzero((vol.labels == 2).any(axis=(1, 2)))[0]
+    assert sac_x[0] == 0 and (vol.labels[0] == 2).sum() > 0.5 * (vol.labels == 2).sum(axis=(1, 2)).max()
+
+
+def test_site_entries_lie_on_the_bone_surface(vol, site):
+    for e in site.entries:
+        inside = vol.sample(e + 1.0 * site.direction)[0]
+        outside = vol.sample(e - 1.0 * site.direction)[0]
+        assert inside == 1 and outside != 1
+    # both needles stay in bone for most of their depth (a pin that leaves the bone is not a pin)
+    t = np.arange(0.5, site.depth_in_bone, 0.5)
+    for e in site.entries:
+        assert np.mean(vol.sample(e + t[:, None] * site.direction) == 1) > 0.6
+
+
+def test_thickness_along_needles_is_the_walked_layers(vol, site):
+    for p in gp.needle_paths(vol, site):
+        # layers tile [start, end] without gaps; muscle + adipose <= total
+        ends = [(a, b) for _, a, b in p.layers]
+        assert all(abs(b0 - a1) < 1e-9 for (_, b0), (a1, _) in zip(ends, ends[1:]))
+        assert p.muscle_mm + p.adipose_mm <= p.total_mm + 1e-9
+        # the skin exit is the last body sample: one step further out is void
+        assert vol.sample(p.skin_exit - 1.0 * site.direction)[0] == 0
+        # the paper's patients: 31.82 +- 5.43 mm; a sensible site lies within 3 SD
+        assert abs(p.total_mm - 31.82) < 3 * 5.43
+
+
+def test_thickness_agrees_with_the_img_segmentation(vol, site):
+    """Independent check: the img branch's segmentation and path walk (LPS frame, its own tissue
+    rules) find the bone where our needle enters it and about the same soft-tissue thickness."""
+    from needletissue.fem.pelvis import PelvisConfig, thickness_crosscheck
+
+    class _PM:
+        pass
+
+    pm = _PM()
+    pm.site, pm.paths = site, gp.needle_paths(vol, site)
+    for row in thickness_crosscheck(PelvisConfig(), pm):
+        assert row["bone_point_distance_mm"] < 1.5  # half a CT voxel
+        # tissue rules differ (skin/outline voxels, 'other' tissue): within two CT voxels
+        assert abs(row["total_mm"] - row["ours_total_mm"]) < 2 * vol.spacing
+
+
+def test_mesh_is_conforming_and_complete(coarse):
+    m = coarse
+    assert set(m.regions) >= {"hip_cortical", "hip_cancellous", "sacrum", "femur", "gluteus_maximus",
+                              "gluteus_medius", "gluteus_minimus", "iliopsoas", "adipose", "needle_1",
+                              "needle_2", "clamp"}
+    ids = np.concatenate(list(m.regions.values()))
+    assert np.array_equal(np.sort(ids), np.arange(len(m.cells)))  # every tet in exactly one region
+    # conforming: every face is shared by at most two tets, and the boundary is closed (each boundary
+    # edge is shared by an even number of boundary faces)
+    f = np.sort(m.cells[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]].reshape(-1, 3), axis=1)
+    _, cnt = np.unique(f, axis=0, return_counts=True)
+    assert cnt.max() == 2
+    p = m.points[m.cells]
+    vol6 = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
+    assert vol6.min() > 0
+    for name, faces in m.surfaces.items():
+        assert len(faces) > 0, name
+
+
+def test_quadratic_needles_have_the_cylinder_volume(coarse):
+    """Straight-edged tets inscribe a polygon (coarse: ~5 sides, ~25 % area lost); with the midside
+    nodes on the cylinder the tetra10 needle volume converges to pi r^2 L (2 % at 3 mm elements)."""
+    import felupe as fem
+
+    from needletissue.fem import TaggedMesh
+
+    m = coarse
+    q = TaggedMesh(m.points, m.cells, m.regions, m.surfaces).to_quadratic()
+    curved = gp.curve_needles(q.points, q.cells, q.regions, m.needle_axes, m.site.diameter / 2)
+    r = m.site.diameter / 2
+    for i, (b, t) in enumerate(m.needle_axes):
+        exact = math.pi * r * r * np.linalg.norm(t - b)
+        cells = q.cells[q.regions[f"needle_{i + 1}"]]
+        vols = []
+        for pts in (q.points, curved):
+            region = fem.RegionQuadraticTetra(fem.Mesh(pts, cells, "tetra10"))
+            vols.append(region.dV.sum())
+        straight, curv = vols
+        assert straight < 0.9 * exact
+        assert abs(curv - exact) < 0.02 * exact
+
+
+def test_gripper_is_the_two_clamp_side_faces(coarse):
+    """Two flat faces, width apart, each of area bar length x clamp height (triangles tile them)."""
+    m = coarse
+    tri = m.surfaces["gripper"]
+    e2 = m.clamp_frame[1]
+    s = m.points[tri].mean(axis=1) @ e2
+    sides = np.unique(np.round(s, 6))
+    assert len(sides) == 2 and abs(np.ptp(sides) - m.site.clamp_size[1]) < 1e-6
+    a = 0.5 * np.linalg.norm(np.cross(m.points[tri[:, 1]] - m.points[tri[:, 0]],
+                                      m.points[tri[:, 2]] - m.points[tri[:, 0]]), axis=1)
+    span = abs((m.site.entries[1] - m.site.entries[0]) @ m.clamp_frame[0])
+    exact = 2 * (span + 2 * m.site.clamp_overhang) * m.site.clamp_size[0]
+    assert abs(a.sum() - exact) < 1e-6 * exact
+
+
+def test_bad_inputs_name_the_field():
+    from needletissue.fem.pelvis import PelvisConfig
+
+    with pytest.raises(InputError, match="force"):
+        PelvisConfig(forces=[-5.0])
+    with pytest.raises(InputError, match="force_direction"):
+        PelvisConfig(force_direction=[0, 0, 0])
+    with pytest.raises(InputError, match="si_joint"):
+        PelvisConfig(si_joint="glued")
+    with pytest.raises(InputError, match="needle.direction"):
+        gp.NeedleSite(entries=[[0, 0, 0], [20, 0, 0]], direction=[0, 0, 0])
+
+
+def test_coarse_solve_equilibrium_and_monotone(tmp_path):
+    """A coarse quadratic run: the fixed supports carry the applied force (global equilibrium), the
+    deformation grows with the force, and the needle ends move more than the tissue."""
+    from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+
+    cfg = PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[50.0, 100.0],
+                       out=str(tmp_path), figures=False, crosscheck_thickness=False)
+    res = run_pelvis_model(cfg)
+    a, b = res.results
+    assert 0 < a.max_needle_deformation_mm < b.max_needle_deformation_mm
+    assert b.max_needle_deformation_mm >= max(v for k, v in b.max_deformation_mm.items()
+                                              if k in gp.SOFT_TISSUES)
+    data = json.loads((tmp_path / "pelvis_results.json").read_text())
+    assert data["ranking"] and set(data["ranking"]) <= set(gp.SOFT_TISSUES)
+    assert (tmp_path / "pelvis_100N.vtu").is_file() and (tmp_path / "config.toml").is_file()
+    # equilibrium: reactions of all supports + applied force = 0 (within 1 % of the force)
+    R = np.sum([np.asarray(v) for v in data["results"][-1]["reactions_N"].values()], axis=0)
+    F = 100.0 * np.asarray(data["force_vector_unit"])
+    assert np.linalg.norm(R + F) < 0.01 * 100.0, (R, F)
+
+
+def test_cli_rejects_bad_force():
+    code = ("import sys; sys.argv = ['needletissue', 'fe', 'pelvis', '--force', '-1'];"
+            "from needletissue.cli import main; main()")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ))
+    assert r.returncode == 2, r.stderr
+    assert "force" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_ssm_source_layers_and_hip_joint():
+    """Second source: the mean SSM bones with offset layers. The femoral-head proxy sits in the
+    acetabulum, lateral of the midline by half a hip-joint-centre separation (adults: ~150-190 mm
+    between the joint centres); along an oblique needle the offset layers are at least as thick as
+    along the normal (22 mm muscle + 10 mm adipose, minus one voxel per interface)."""
+    v = gp.ssm_label_volume(spacing=2.0)
+    head = v.world(np.argwhere(v.labels == 3))
+    assert len(head) > 0
+    half = head[:, 0].mean() - v.origin[0]  # the volume starts at the sacrum's mid-plane
+    assert 70.0 < half < 100.0, half
+    site = gp.standard_site(v, "iliac_crest")
+    for p in gp.needle_paths(v, site):
+        assert p.total_mm >= 32.0 - 2 * v.spacing
+        assert p.adipose_mm >= 10.0 - 2 * v.spacing

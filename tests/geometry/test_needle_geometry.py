@@ -1,0 +1,175 @@
+"""Needle-tissue-bone geometry: region volumes against closed forms, named groups, conformity, bad input."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+
+import meshio
+import numpy as np
+import pytest
+
+from needletissue.errors import InputError
+from needletissue.geometry.needle import REGIONS, SURFACES, MeshError, NeedleGeometry, mesh_needle_model
+
+COARSE = dict(needle_mesh_size=1.5, mesh_size=4.0, far_mesh_size=20.0, half_width=40.0, free_length=80.0)
+
+
+def _read(path):
+    m = meshio.read(path)
+    names = {tag: name for name, (tag, dim) in m.field_data.items()}
+    pts = m.points
+    tets, tet_region, tris = [], [], {}
+    for block, phys in zip(m.cells, m.cell_data["gmsh:physical"]):
+        for c, t in zip(block.data, phys):
+            if block.type == "tetra":
+                tets.append(c)
+                tet_region.append(names[t])
+            elif block.type == "triangle":
+                tris.setdefault(names[t], []).append(c)
+    return pts, np.array(tets), np.array(tet_region), {k: np.array(v) for k, v in tris.items()}
+
+
+def _tet_volumes(pts, tets):
+    a, b, c, d = (pts[tets[:, i]] for i in range(4))
+    return np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) / 6.0
+
+
+def _tri_areas(pts, tris):
+    a, b, c = (pts[tris[:, i]] for i in range(3))
+    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
+@pytest.fixture(scope="module", params=[2, 1], ids=["two_needles", "one_needle"])
+def built(request, tmp_path_factory):
+    g = NeedleGeometry(needles=request.param, **COARSE)
+    path = tmp_path_factory.mktemp("mesh") / "needle.msh"
+    info = mesh_needle_model(g, path)
+    return g, info, _read(path)
+
+
+def test_named_groups_present(built):
+    g, info, (pts, tets, reg, tris) = built
+    expected = [r for r in REGIONS if g.needles == 2 or r != "needle_2"]
+    assert sorted(set(reg)) == sorted(expected)
+    assert set(SURFACES) <= set(tris)
+    assert info.tetrahedra == len(tets) and info.min_quality > 0
+
+
+def test_layer_volumes_exact(built):
+    """Planar layers are meshed exactly: each layer's tets (any region) fill its box to round-off."""
+    g, _, (pts, tets, reg, _) = built
+    vol = _tet_volumes(pts, tets)
+    assert (vol > 0).all(), "inverted tetrahedra"
+    zc = pts[tets].mean(axis=1)[:, 2]
+    x0, x1, y0, y1 = g.extent
+    A = (x1 - x0) * (y1 - y0)
+    tm, ta, T = g.muscle_thickness, g.adipose_thickness, g.bone_thickness
+    for lo, hi, exact in ((-T, 0, A * T), (0, tm, A * tm), (tm, tm + ta, A * ta)):
+        inside = (zc > lo) & (zc < hi) & ~np.isin(reg, ["clamp"])
+        assert vol[inside].sum() == pytest.approx(exact, rel=1e-9)
+    # Bone = cortical + cancellous + needle part in bone; the core box is cancellous + needle part in it.
+    cx0, cx1, cy0, cy1, cz0, cz1 = g.clamp_box
+    in_clamp = np.isin(reg, ["clamp"]) | ((zc > cz0) & np.char.startswith(reg.astype(str), "needle"))
+    assert vol[in_clamp].sum() == pytest.approx((cx1 - cx0) * (cy1 - cy0) * (cz1 - cz0), rel=1e-9)
+
+
+def test_region_volumes_vs_analytic(built):
+    """Needles are inscribed polygonal cylinders: volume below pi r^2 L by at most the chord deficit
+    (h/r)^2/6 of a polygon with edge h (h = 1.5x the needle mesh size bounds gmsh's longest edge);
+    regions with a needle hole are above their analytic volume by the same absolute amount."""
+    g, _, (pts, tets, reg, _) = built
+    vol = _tet_volumes(pts, tets)
+    exact = g.analytic_volumes()
+    r = g.diameter / 2
+    deficit = (1.5 * g.needle_mesh_size / r) ** 2 / 6
+    needle_total = sum(v for k, v in exact.items() if k.startswith("needle"))
+    for name, v_exact in exact.items():
+        v = vol[reg == name].sum()
+        if name.startswith("needle"):
+            assert v_exact * (1 - deficit) < v <= v_exact * (1 + 1e-9), name
+        else:
+            assert v_exact - 1e-6 <= v < v_exact + deficit * needle_total, name
+
+
+def test_conforming_interfaces(built):
+    """Every triangle is shared by at most two tets; faces of only one tet lie on the outer boundary
+    (far faces, bone bottom, skin, or needle/clamp above the skin): no duplicated interface nodes."""
+    g, _, (pts, tets, reg, tris) = built
+    faces = np.sort(np.concatenate([tets[:, [0, 1, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 3]],
+                                    tets[:, [1, 2, 3]]]), axis=1)
+    count = Counter(map(tuple, faces))
+    assert max(count.values()) == 2
+    single = np.array([f for f, n in count.items() if n == 1])
+    c = pts[single].mean(axis=1)
+    x0, x1, y0, y1 = g.extent
+    eps = 1e-6
+    outer = ((np.abs(c[:, 0] - x0) < eps) | (np.abs(c[:, 0] - x1) < eps) | (np.abs(c[:, 1] - y0) < eps)
+             | (np.abs(c[:, 1] - y1) < eps) | (np.abs(c[:, 2] + g.bone_thickness) < eps)
+             | (c[:, 2] > g.tissue_thickness - eps))
+    assert outer.all(), f"{(~outer).sum()} boundary faces inside the model"
+    # Interface groups are faces of tets on both sides.
+    for name in ("muscle_bone", "needle_muscle", "needle_bone", "muscle_adipose", "needle_clamp"):
+        f = np.sort(tris[name], axis=1)
+        assert all(count[tuple(t)] == 2 for t in f), name
+
+
+def test_surface_areas_exact(built):
+    g, _, (pts, _, _, tris) = built
+    x0, x1, y0, y1 = g.extent
+    T = g.bone_thickness
+    assert _tri_areas(pts, tris["gripper"]).sum() == pytest.approx(g.gripper_area, rel=1e-9)
+    bone = (x1 - x0) * (y1 - y0) + 2 * ((x1 - x0) + (y1 - y0)) * T
+    assert _tri_areas(pts, tris["bone_fixed"]).sum() == pytest.approx(bone, rel=1e-9)
+    far = 2 * ((x1 - x0) + (y1 - y0)) * g.tissue_thickness
+    assert _tri_areas(pts, tris["tissue_far"]).sum() == pytest.approx(far, rel=1e-9)
+    muscle_bone = (x1 - x0) * (y1 - y0) - g.needles * math.pi * (g.diameter / 2) ** 2
+    a = _tri_areas(pts, tris["muscle_bone"]).sum()
+    assert muscle_bone <= a < muscle_bone + g.needles * math.pi * (g.diameter / 2) ** 2 * 0.2
+
+
+def test_needle_axis_nodes(built):
+    """The needle axes are embedded: mesh nodes on x = x_i, y = 0 from the tip (-h) to the end (l)."""
+    g, _, (pts, *_) = built
+    for x in g.needle_x:
+        on = np.abs(pts[:, 0] - x) + np.abs(pts[:, 1]) < 1e-9
+        z = np.sort(pts[on, 2])
+        assert z[0] == pytest.approx(-g.depth) and z[-1] == pytest.approx(g.free_length)
+        assert np.diff(z).max() <= 2.0 * g.needle_mesh_size
+
+
+def test_mesh_is_reproducible(tmp_path):
+    g = NeedleGeometry(**{**COARSE, "needle_mesh_size": 2.5})
+    a = mesh_needle_model(g, tmp_path / "a.msh")
+    b = mesh_needle_model(g, tmp_path / "b.msh")
+    assert (a.nodes, a.tetrahedra) == (b.nodes, b.tetrahedra)
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    (dict(free_length=40.0), "free_length"),            # needle ends inside the tissue/clamp
+    (dict(spacing=4.0, diameter=5.0), "spacing"),        # needles overlap
+    (dict(muscle_thickness=0.0), "muscle_thickness"),
+    (dict(cortical_thickness=0.0), "cortical_thickness"),
+    (dict(depth=45.0, bone_thickness=40.0), "depth"),    # needle longer than the model
+    (dict(needles=3), "needles"),
+    (dict(diameter=float("nan")), "diameter"),
+    (dict(needle_mesh_size=6.0), "needle_mesh_size"),
+])
+def test_bad_geometry_rejected_before_meshing(kwargs, field, monkeypatch):
+    import gmsh
+
+    monkeypatch.setattr(gmsh, "initialize", lambda *a, **k: pytest.fail("gmsh started"))
+    with pytest.raises(InputError) as exc:
+        mesh_needle_model(NeedleGeometry(**kwargs), "unused.msh")
+    assert exc.value.field == field
+
+
+def test_gmsh_failure_is_a_clear_error(tmp_path, monkeypatch):
+    import gmsh
+
+    def boom(dim=3):
+        raise Exception("PLC Error: a segment and a facet intersect")
+
+    monkeypatch.setattr(gmsh.model.mesh, "generate", boom)
+    with pytest.raises(MeshError, match="gmsh failed"):
+        mesh_needle_model(NeedleGeometry(**COARSE), tmp_path / "x.msh")

@@ -1,0 +1,97 @@
+"""reproduce's output folder: complete or absent, never half-written; the HTML report is self-contained."""
+
+import json
+
+import pytest
+
+from needletissue.errors import InputError
+from needletissue.report.config import load_config
+from needletissue.report.pipeline import MARKER, Comparison, Stage, StageResult, run_reproduce
+from needletissue.report.paper import PAPER
+
+
+def _always(cfg, ctx):
+    return True, ""
+
+
+def _writes(value):
+    def run(cfg, ctx):
+        d = ctx.stage_dir("s")
+        (d / "data.txt").write_text(str(value))
+        return StageResult({"value": value}, files=[d / "data.txt"],
+                           comparisons=[Comparison("Ritz tip deflection at 300 N", value, "mm",
+                                                   "ritz_tip_deflection_300N_mm")])
+    return run
+
+
+def _interrupted(cfg, ctx):
+    (ctx.stage_dir("s") / "partial.txt").write_text("half")
+    raise KeyboardInterrupt
+
+
+def _die(cfg, ctx):
+    import os
+
+    os._exit(139)
+
+
+def _broken(cfg, ctx):
+    raise RuntimeError("solver exploded")
+
+
+def test_complete_run_has_marker_results_and_comparison(tmp_path):
+    out = tmp_path / "res"
+    res = run_reproduce(load_config(), out, [Stage("s", "S", _writes(18.0), _always)], progress=False)
+    assert res.ok and (out / MARKER).exists()
+    data = json.loads((out / "results.json").read_text())
+    row = data["comparison_with_paper"][0]
+    assert row["paper"] == PAPER["ritz_tip_deflection_300N_mm"].value
+    assert row["difference"] == pytest.approx(18.0 - 17.63)
+    assert (out / "config.toml").exists() and (out / "versions.json").exists()
+    html = (out / "report.html").read_text()
+    assert "17.63" in html and "src=\"http" not in html  # nothing fetched from elsewhere
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".res.")]
+
+
+def test_interrupted_run_leaves_no_folder_and_keeps_previous(tmp_path):
+    out = tmp_path / "res"
+    with pytest.raises(KeyboardInterrupt):
+        run_reproduce(load_config(), out, [Stage("s", "S", _interrupted, _always)], progress=False)
+    assert not out.exists()
+    run_reproduce(load_config(), out, [Stage("s", "S", _writes(1.0), _always)], progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        run_reproduce(load_config(), out, [Stage("s", "S", _writes(2.0), _always),
+                                           Stage("t", "T", _interrupted, _always)], progress=False)
+    # the earlier complete result is still there, untouched
+    assert (out / "s" / "data.txt").read_text() == "1.0"
+    assert not (out / "s" / "partial.txt").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".res.")]
+
+
+def test_failed_stage_is_reported_and_others_run(tmp_path):
+    out = tmp_path / "res"
+    res = run_reproduce(load_config(), out, [Stage("a", "A", _broken, _always),
+                                             Stage("s", "S", _writes(3.0), _always)], progress=False)
+    assert not res.ok
+    data = json.loads((out / "results.json").read_text())
+    assert data["stages"]["a"]["status"] == "failed" and "solver exploded" in data["stages"]["a"]["reason"]
+    assert data["stages"]["s"]["status"] == "ok"
+
+
+def test_refuses_foreign_folder(tmp_path):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "thesis.tex").write_text("precious")
+    with pytest.raises(InputError, match="--out"):
+        run_reproduce(load_config(), out, [], progress=False)
+    assert (out / "thesis.tex").read_text() == "precious"
+
+
+def test_isolated_stage_that_crashes_fails_alone(tmp_path):
+    """A stage whose process dies (here: os._exit, as a segfault would) is a failed stage; the run ends."""
+    out = tmp_path / "res"
+    res = run_reproduce(load_config(), out, [Stage("crash", "C", _die, _always, isolated=True),
+                                             Stage("s", "S", _writes(3.0), _always)], progress=False)
+    data = json.loads((out / "results.json").read_text())
+    assert data["stages"]["crash"]["status"] == "failed" and "died" in data["stages"]["crash"]["reason"]
+    assert data["stages"]["s"]["status"] == "ok" and not res.ok

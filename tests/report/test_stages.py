@@ -1,0 +1,31 @@
+"""The real stages: numbers in results.json and the report are the engines' own, and the comparison
+table uses the paper's published values."""
+
+import json
+
+import pytest
+
+from needletissue import ritz
+from needletissue.report.config import load_config
+from needletissue.report.pipeline import run_reproduce
+from needletissue.report.stages import ritz_model, stage_list
+
+QUICK = {"traction": {"enabled": False}, "needle_fe": {"enabled": False}, "pelvis": {"enabled": "off"}}
+
+
+def test_ritz_and_materials_stages(tmp_path):
+    cfg = load_config(overrides=QUICK)
+    out = tmp_path / "res"
+    res = run_reproduce(cfg, out, stage_list(), progress=False)
+    assert res.ok
+    data = json.loads((out / "results.json").read_text())
+    assert data["stages"]["traction"]["status"] == "skipped"
+    direct = ritz.solve_forces([300.0], ritz_model(cfg), order=cfg.ritz.order)[0]
+    row = next(c for c in data["comparison_with_paper"] if c["quantity"] == "Ritz tip deflection at 300 N")
+    assert row["ours"] == pytest.approx(direct.tip_deflection_mm, rel=1e-12)
+    assert row["paper"] == 17.63 and row["difference"] == pytest.approx(direct.tip_deflection_mm - 17.63)
+    for name in ("materials", "ritz"):
+        for fig in data["stages"][name]["figures"]:
+            assert (out / fig).stat().st_size > 1000
+    html = (out / "report.html").read_text()
+    assert html.count("data:image/png;base64,") >= 2
