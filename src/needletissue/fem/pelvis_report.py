@@ -30,8 +30,11 @@ def _render(res, fe_last, mesh, path):
     u = fe_last.displacement
     grid.point_data["|u| mm"] = np.linalg.norm(u, axis=1)
     tag = np.zeros(len(cells), int)
-    for i, ids in enumerate(mesh.regions.values()):
+    steel_tags = []
+    for i, (name, ids) in enumerate(mesh.regions.items()):
         tag[ids] = i
+        if str(name).startswith(("needle", "clamp")):
+            steel_tags.append(i)
     grid.cell_data["region"] = tag
     grid = grid.linear_copy()
     axes = np.array(res.site["needle_axes_mm"], float)
@@ -40,15 +43,18 @@ def _render(res, fe_last, mesh, path):
     f = np.asarray(res.force_vector_unit, float)
     normal = np.cross(d, f)
     normal /= np.linalg.norm(normal)
-    on_needle = axes[0].mean(axis=0)  # plane through needle_1's axis: its cut face is visible
-    section = grid.clip(normal=normal, origin=on_needle, crinkle=True)  # (plain clip segfaulted in VTK 9.x here)
+    on_needle = axes[0].mean(axis=0)
+    # Outer surface of the anatomy (translucent) and the needles + clamp (opaque), coloured by |u|.
+    # (Clipping/slicing the quadratic grid segfaulted in VTK 9.x on this machine; surfaces do not.)
+    body = grid.extract_surface(algorithm="dataset_surface")
+    steel = grid.extract_cells(np.nonzero(np.isin(tag, steel_tags))[0]).extract_surface(algorithm="dataset_surface")
     p = pv.Plotter(off_screen=True, window_size=(1400, 1000))
-    p.add_mesh(section, scalars="|u| mm", cmap="viridis", show_edges=False,
+    p.add_mesh(body, scalars="|u| mm", cmap="viridis", opacity=0.25, show_scalar_bar=False)
+    p.add_mesh(steel, scalars="|u| mm", cmap="viridis",
                scalar_bar_args={"title": f"|u| (mm) at {res.results[-1].force_N:.0f} N"})
-    p.add_mesh(grid.extract_feature_edges(), color="grey", opacity=0.15)
-    # clip() keeps the half behind the plane: look at the cut face from the front
-    p.camera_position = [tuple(on_needle + 220 * normal), tuple(on_needle), (0, 0, 1)]
-    p.add_text("section through needle_1 (plane of the needle axis and the force)", font_size=10)
+    p.camera_position = [tuple(on_needle + 260 * normal), tuple(on_needle), (0, 0, 1)]
+    p.add_text("model surface (translucent), needles and clamp; view normal to the needle-force plane",
+               font_size=10)
     p.screenshot(str(path))
     p.close()
     return path
@@ -142,11 +148,14 @@ def figures_from_files(out_dir) -> list[str]:
     m = meshio.read(last["vtu"])
     cells = m.cells[0].data
     reg = np.asarray(m.cell_data["region"][0])
-    mesh = NS(points=m.points, cells=cells, regions={i: np.nonzero(reg == i)[0] for i in np.unique(reg)})
+    tags = d["mesh"].get("region_tags") or {}
+    names = {int(v): k for k, v in tags.items()}
+    mesh = NS(points=m.points, cells=cells,
+              regions={names.get(int(i), str(i)): np.nonzero(reg == i)[0] for i in np.unique(reg)})
     res = NS(site=d["site"], force_vector_unit=d["force_vector_unit"],
              results=[NS(force_N=r["force_N"], max_needle_deformation_mm=r["max_needle_deformation_mm"],
                          ritz_tip_deflection_mm=r["ritz_tip_deflection_mm"],
                          max_deformation_mm=r["max_deformation_mm"]) for r in d["results"]])
-    files = [_render(res, NS(displacement=m.point_data["displacement"]), mesh, out_dir / "pelvis_deformation.png")]
-    files += _plots(res, out_dir)
+    files = _plots(res, out_dir)  # first: a VTK crash in the render must not lose the plots
+    files.append(_render(res, NS(displacement=m.point_data["displacement"]), mesh, out_dir / "pelvis_deformation.png"))
     return [str(f) for f in files]
