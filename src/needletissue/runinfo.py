@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from needletissue.errors import InputError
+
 _PACKAGES = (
     "needletissue", "numpy", "scipy", "felupe", "tensortrax", "gmsh", "meshio", "pyvista",
     "vtk", "SimpleITK", "nibabel", "scikit-image", "matplotlib", "dask", "distributed", "pydantic",
@@ -52,9 +54,12 @@ def to_jsonable(obj):
 def write_atomic(path: str | Path, data: bytes | str) -> Path:
     """Write to a temporary file in the same folder, then rename: never a half-written file."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    try:  # an output path that cannot be written is the user's input error, not a traceback
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:
+        raise InputError(str(path), f"cannot write here: {exc.strerror or exc}") from None
     mode = "wb" if isinstance(data, bytes) else "w"
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, mode) as f:
             f.write(data)
@@ -65,6 +70,16 @@ def write_atomic(path: str | Path, data: bytes | str) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def save_figure(fig, path: str | Path, dpi: int = 150) -> Path:
+    """Save a Matplotlib figure atomically, format from the suffix (png when none)."""
+    import io
+
+    path = Path(path)
+    buf = io.BytesIO()
+    fig.savefig(buf, format=path.suffix.lstrip(".") or "png", dpi=dpi)
+    return write_atomic(path, buf.getvalue())
 
 
 def write_json(path: str | Path, obj) -> Path:

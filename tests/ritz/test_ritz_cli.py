@@ -116,3 +116,20 @@ def test_plot_deflection_accepts_batch_and_axes(tmp_path):
     top = max(float(np.max(line.get_ydata())) for line in ax.lines)
     assert top == pytest.approx(b.tip_deflection_mm.max(), rel=1e-12)
     plt.close(fig)
+
+
+def test_unwritable_plot_path_is_input_error(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    r = CliRunner().invoke(app, ["ritz", "--force", "100", "--plot", str(blocker / "fig5.png")])
+    assert isinstance(r.exception, InputError) and "fig5.png" in str(r.exception)
+
+
+def test_error_line_prints_the_message_verbatim(monkeypatch, capsys):
+    """Rich must not read ':b:' as an emoji code or '[...]' as markup in the one-line error."""
+    from needletissue.cli import main
+
+    monkeypatch.setattr(sys, "argv", ["needletissue", "ritz", "--force", "1", "--layer", "a:b:c[/x]"])
+    with pytest.raises(SystemExit) as e:
+        main()
+    assert e.value.code == 2 and "'a:b:c[/x]'" in capsys.readouterr().err
