@@ -126,10 +126,12 @@ def test_unwritable_plot_path_is_input_error(tmp_path):
 
 
 def test_error_line_prints_the_message_verbatim(monkeypatch, capsys):
-    """Rich must not read ':b:' as an emoji code or '[...]' as markup in the one-line error."""
+    """Rich must not read ':b:' as an emoji code or '[...]' as markup, nor wrap a long message (a path)."""
     from needletissue.cli import main
 
-    monkeypatch.setattr(sys, "argv", ["needletissue", "ritz", "--force", "1", "--layer", "a:b:c[/x]"])
+    text = "a:b:c[/x]" + "y" * 120
+    monkeypatch.setattr(sys, "argv", ["needletissue", "ritz", "--force", "1", "--layer", text])
     with pytest.raises(SystemExit) as e:
         main()
-    assert e.value.code == 2 and "'a:b:c[/x]'" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and f"'{text}'" in err and err.count("\n") == 1
