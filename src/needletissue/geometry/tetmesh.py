@@ -12,7 +12,7 @@ nodes with its neighbours), is fast (1.35 M tetrahedra of the example CT in abou
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np

@@ -1,10 +1,8 @@
-"""Figures of the Ritz model: the paper's Fig. 5 (v(z) per force) and the w(3F)/w(F) ratio map."""
+"""Figure of the Ritz model: the paper's Fig. 5, v(z) per force (the ratio map is in paper.py)."""
 
 from __future__ import annotations
 
 from pathlib import Path
-
-import numpy as np
 
 
 def plot_deflection(results, path: str | Path | None = None, model=None, ax=None, n: int = 201,

@@ -8,7 +8,6 @@ ConvergenceError; no unconverged answer is ever returned.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 from functools import cached_property
 
