@@ -51,14 +51,31 @@ def to_jsonable(obj):
     return obj
 
 
+def _unwritable(path, exc: OSError) -> InputError:
+    where = f" ({exc.filename})" if exc.filename and str(exc.filename) != str(path) else ""
+    return InputError(str(path), f"cannot write here: {exc.strerror or exc}{where}")
+
+
+def make_dir(path: str | Path) -> Path:
+    """mkdir -p; an output folder that cannot be made is the user's input error, not a traceback."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise InputError(str(path), "cannot write here: exists and is not a folder") from None
+    except OSError as exc:
+        raise _unwritable(path, exc) from None
+    return path
+
+
 def write_atomic(path: str | Path, data: bytes | str) -> Path:
     """Write to a temporary file in the same folder, then rename: never a half-written file."""
     path = Path(path)
-    try:  # an output path that cannot be written is the user's input error, not a traceback
-        path.parent.mkdir(parents=True, exist_ok=True)
+    make_dir(path.parent)
+    try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     except OSError as exc:
-        raise InputError(str(path), f"cannot write here: {exc.strerror or exc}") from None
+        raise _unwritable(path, exc) from None
     mode = "wb" if isinstance(data, bytes) else "w"
     try:
         with os.fdopen(fd, mode) as f:

@@ -129,8 +129,10 @@ class TetMesh:
         """gmsh MSH 4.1: one discrete volume + NAMED physical volume per region, named physical surfaces."""
         import gmsh
 
+        from needletissue.runinfo import make_dir
+
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
+        make_dir(path.parent)
         tmp = path.with_name(f".{path.stem}.tmp.msh")
         was_init = gmsh.isInitialized()
         if not was_init:
