@@ -9,6 +9,7 @@ from types import SimpleNamespace
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from needletissue import __version__
 from needletissue.errors import InputError, NeedleTissueError
@@ -31,7 +32,7 @@ groups = SimpleNamespace(
 )
 app.add_typer(groups.fe, name="fe")
 app.add_typer(groups.validate, name="validate")
-err = Console(stderr=True)
+err = Console(stderr=True, emoji=False)  # "a:b:c" in a message must not become an emoji
 
 
 def _version(value: bool):
@@ -59,8 +60,8 @@ def main() -> None:
     try:
         app()
     except InputError as exc:
-        err.print(f"[red]error:[/red] {exc}")
+        err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)  # one line, paths unbroken
         sys.exit(2)
     except NeedleTissueError as exc:
-        err.print(f"[red]error:[/red] {exc}")
+        err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)  # one line, paths unbroken
         sys.exit(1)

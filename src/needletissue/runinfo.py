@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from needletissue.errors import InputError
+
 _PACKAGES = (
     "needletissue", "numpy", "scipy", "felupe", "tensortrax", "gmsh", "meshio", "pyvista",
     "vtk", "SimpleITK", "nibabel", "scikit-image", "matplotlib", "dask", "distributed", "pydantic",
@@ -49,12 +51,32 @@ def to_jsonable(obj):
     return obj
 
 
+def _unwritable(path, exc: OSError) -> InputError:
+    where = f" ({exc.filename})" if exc.filename and str(exc.filename) != str(path) else ""
+    return InputError(str(path), f"cannot write here: {exc.strerror or exc}{where}")
+
+
+def make_dir(path: str | Path) -> Path:
+    """mkdir -p; an output folder that cannot be made is the user's input error, not a traceback."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise InputError(str(path), "cannot write here: exists and is not a folder") from None
+    except OSError as exc:
+        raise _unwritable(path, exc) from None
+    return path
+
+
 def write_atomic(path: str | Path, data: bytes | str) -> Path:
     """Write to a temporary file in the same folder, then rename: never a half-written file."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_dir(path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:
+        raise _unwritable(path, exc) from None
     mode = "wb" if isinstance(data, bytes) else "w"
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, mode) as f:
             f.write(data)
@@ -65,6 +87,16 @@ def write_atomic(path: str | Path, data: bytes | str) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def save_figure(fig, path: str | Path, dpi: int = 150) -> Path:
+    """Save a Matplotlib figure atomically, format from the suffix (png when none)."""
+    import io
+
+    path = Path(path)
+    buf = io.BytesIO()
+    fig.savefig(buf, format=path.suffix.lstrip(".") or "png", dpi=dpi)
+    return write_atomic(path, buf.getvalue())
 
 
 def write_json(path: str | Path, obj) -> Path:

@@ -57,3 +57,10 @@ def test_bad_input_exit_code_2(tmp_path, monkeypatch, capsys, phantom_ct):
     code, _, err = run(monkeypatch, capsys, "segment", phantom_ct, "--out", tmp_path / "o",
                        "--cortical-thickness", "-1")
     assert code == 2 and "cortical_thickness" in err
+
+
+def test_output_folder_that_cannot_be_made_exit_code_2(tmp_path, monkeypatch, capsys, phantom_ct):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    code, _, err = run(monkeypatch, capsys, "segment", phantom_ct, "--out", blocker / "seg")
+    assert code == 2 and str(blocker / "seg") in err and "cannot write" in err

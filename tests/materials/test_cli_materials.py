@@ -10,7 +10,9 @@ import pytest
 from typer.testing import CliRunner
 
 from needletissue.cli import app, main
+from needletissue import materials
 from needletissue.materials import closed_form as cf
+from needletissue.materials import stability
 
 runner = CliRunner()
 
@@ -39,7 +41,10 @@ def test_list_json_has_the_registry_and_stable_ranges():
     rows = {row["name"]: row for row in json.loads(r.stdout)}
     assert set(rows) >= {"muscle", "adipose", "cortical_bone", "cancellous_bone", "needle", "clamp"}
     assert rows["muscle"]["initial_shear_modulus_MPa"] == pytest.approx(2 * (0.08556 - 0.05841))
-    assert rows["muscle"]["stable_range"]["uniaxial"][1] == pytest.approx(1.2663, abs=1e-4)
+    for name in ("muscle", "adipose"):
+        m = materials.get(name)
+        assert rows[name]["stable_range"] == {mode: list(stability.stable_range(m.model, m.parameters, mode))
+                                              for mode in cf.MODES}
 
 
 @pytest.mark.parametrize("stretch_max", [1.5, 0.8])
@@ -54,7 +59,7 @@ def test_curve_json_contract(stretch_max):
     assert s[0] == 1.0 and s[-1] == stretch_max and s.size == 11
     np.testing.assert_allclose(d["nominal_stress_MPa"],
                                cf.nominal_stress("mooney_rivlin_5", d["parameters"], "biaxial", s), rtol=1e-15)
-    assert len(d["stable_range"]) == 2
+    assert d["stable_range"] == list(stability.stable_range("mooney_rivlin_5", d["parameters"], "biaxial"))
 
 
 def test_curve_outside_stable_range_warns_on_stderr_and_writes_plot(tmp_path, monkeypatch, capsys):

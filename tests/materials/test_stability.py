@@ -90,6 +90,19 @@ def test_muscle_hessian_matches_felupe_stress_increments(mode):
     assert (margins > 0).any() and (margins < 0).any()
 
 
+@pytest.mark.parametrize("mode,bracket", [("uniaxial", (1.1, 1.5)), ("planar", (1.1, 1.6))])
+def test_muscle_stable_end_is_where_felupe_tangent_loses_definiteness(mode, bracket):
+    """The paper's MR5 stable end (1.2663 uniaxial, as README and docs state) is the root of the smallest
+    eigenvalue of FElupe's own incompressible tangent, found independently of our Hessian by brentq."""
+    m = materials.get("muscle")
+    umat = m.isochoric()
+    ev = lambda s: np.linalg.eigvalsh(felupe_tangent(umat, np.log(cf.principal_stretches(mode, s)[:, 0])))[0]  # noqa: E731
+    root = brentq(ev, *bracket, xtol=1e-10)
+    assert stability.stable_range(m.model, m.parameters, mode)[1] == pytest.approx(root, abs=1e-6)
+    if mode == "uniaxial":
+        assert root == pytest.approx(1.2663, abs=5e-5)
+
+
 def test_drucker_implies_rising_cauchy_stress_along_the_path():
     """Uniaxial path: de = (1, -1/2, -1/2) de1, d(tau) = (d sigma, 0, 0), so Drucker gives d sigma / d e1 > 0."""
     m = materials.get("muscle")
@@ -105,7 +118,7 @@ def test_curve_warns_only_outside_the_stable_range():
         warnings.simplefilter("error", stability.UnstableMaterialWarning)
         c = curves.curve("muscle", "uniaxial", stretch_max=0.98 * hi, points=11)
     assert c.warning is None
-    with pytest.warns(stability.UnstableMaterialWarning, match=r"muscle .* uniaxial .*\[0\.2, 1\.266\]"):
+    with pytest.warns(stability.UnstableMaterialWarning, match=rf"muscle .* uniaxial .*\[0\.2, {hi:.4g}\]"):
         c = curves.curve("muscle", "uniaxial", stretch_max=1.5, points=51)
     assert c.stable_range[1] == pytest.approx(hi)
 

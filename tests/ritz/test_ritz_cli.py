@@ -116,3 +116,22 @@ def test_plot_deflection_accepts_batch_and_axes(tmp_path):
     top = max(float(np.max(line.get_ydata())) for line in ax.lines)
     assert top == pytest.approx(b.tip_deflection_mm.max(), rel=1e-12)
     plt.close(fig)
+
+
+def test_unwritable_plot_path_is_input_error(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    r = CliRunner().invoke(app, ["ritz", "--force", "100", "--plot", str(blocker / "fig5.png")])
+    assert isinstance(r.exception, InputError) and str(blocker) in str(r.exception)
+
+
+def test_error_line_prints_the_message_verbatim(monkeypatch, capsys):
+    """Rich must not read ':b:' as an emoji code or '[...]' as markup, nor wrap a long message (a path)."""
+    from needletissue.cli import main
+
+    text = "a:b:c[/x]" + "y" * 120
+    monkeypatch.setattr(sys, "argv", ["needletissue", "ritz", "--force", "1", "--layer", text])
+    with pytest.raises(SystemExit) as e:
+        main()
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and f"'{text}'" in err and err.count("\n") == 1

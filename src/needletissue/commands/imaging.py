@@ -75,7 +75,7 @@ def register(app: typer.Typer, groups) -> None:
         from needletissue.geometry.surfaces import surfaces
         from needletissue.geometry.tetmesh import MeshConfig, tet_mesh
         from needletissue.imaging.segment import Segmentation
-        from needletissue.runinfo import write_json, write_run_files
+        from needletissue.runinfo import make_dir, write_json, write_run_files
 
         seg = Segmentation.load(directory)
         box = None
@@ -84,6 +84,7 @@ def register(app: typer.Typer, groups) -> None:
         elif crop:
             box = tuple(_floats("crop", crop, 6))
         cfg = MeshConfig(size=size, regions=regions.split(",") if regions else None, crop=box).validate()
+        make_dir(out)  # fail before minutes of meshing, not after
         t0 = time.perf_counter()
         results = {}
         if surfaces_out:

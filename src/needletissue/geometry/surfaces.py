@@ -62,8 +62,9 @@ class TissueSurfaces:
     reports: dict = field(default_factory=dict)    # name -> SurfaceReport
 
     def write(self, out_dir: str | Path, formats=("stl", "vtp")) -> list[Path]:
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
+        from needletissue.runinfo import make_dir
+
+        out_dir = make_dir(out_dir)
         paths = []
         for name, surf in self.surfaces.items():
             for ext in formats:

@@ -12,7 +12,7 @@ nodes with its neighbours), is fast (1.35 M tetrahedra of the example CT in abou
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -129,8 +129,10 @@ class TetMesh:
         """gmsh MSH 4.1: one discrete volume + NAMED physical volume per region, named physical surfaces."""
         import gmsh
 
+        from needletissue.runinfo import make_dir
+
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
+        make_dir(path.parent)
         tmp = path.with_name(f".{path.stem}.tmp.msh")
         was_init = gmsh.isInitialized()
         if not was_init:

@@ -167,25 +167,6 @@ def _exit_point(seg, point, outward, margin_mm: float = 5.0, clear_mm: float = 3
     return np.asarray(point) + (t_out + margin_mm) * d
 
 
-def _outward_normals(seg, pts: np.ndarray) -> np.ndarray:
-    """Outward normals of the bone surface at physical points (gradient of a smoothed bone mask)."""
-    import SimpleITK as sitk
-
-    arr = sitk.GetArrayViewFromImage(seg.labels)
-    bone = np.isin(arr, [seg.tissues[b] for b in BONE_NAMES if b in seg.tissues]).astype(np.float32)
-    sm = ndi.gaussian_filter(bone, 1.5)
-    grads = np.gradient(sm)  # d/dk, d/dj, d/di
-    img = seg.labels
-    D = np.asarray(img.GetDirection(), float).reshape(3, 3)
-    sp = np.asarray(img.GetSpacing(), float)
-    ijk = np.rint((pts - np.asarray(img.GetOrigin())) @ D / sp).astype(int)
-    g_idx = np.stack([grads[2][ijk[:, 2], ijk[:, 1], ijk[:, 0]] / sp[0],
-                      grads[1][ijk[:, 2], ijk[:, 1], ijk[:, 0]] / sp[1],
-                      grads[0][ijk[:, 2], ijk[:, 1], ijk[:, 0]] / sp[2]], 1)
-    g = -(g_idx @ D.T)  # outward = minus gradient of the inside indicator
-    return g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
-
-
 def _head_centre(seg, side: str) -> np.ndarray:
     fem = _bone_points(seg, f"femur_{side}")
     top = fem[fem[:, 2] > fem[:, 2].max() - 40.0]  # femoral head (about 45 mm across)

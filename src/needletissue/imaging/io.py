@@ -134,8 +134,3 @@ def read_labels(path: str | Path, reference=None):
                          f"than the CT ({grid_description(reference)})")
     return image
 
-
-def index_to_physical_matrix(image) -> tuple[np.ndarray, np.ndarray]:
-    """(A, origin) with x_phys = origin + A @ (i, j, k): A = direction * diag(spacing)."""
-    d = np.asarray(image.GetDirection(), float).reshape(3, 3)
-    return d * np.asarray(image.GetSpacing(), float)[None, :], np.asarray(image.GetOrigin(), float)

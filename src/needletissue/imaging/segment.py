@@ -104,10 +104,9 @@ class Segmentation:
     def save(self, out_dir: str | Path) -> dict[str, Path]:
         import SimpleITK as sitk
 
-        from needletissue.runinfo import write_json
+        from needletissue.runinfo import make_dir, write_json
 
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
+        out_dir = make_dir(out_dir)
         tmp = out_dir / ".tissues.tmp.nii.gz"
         sitk.WriteImage(self.labels, str(tmp), useCompression=True)
         tmp.replace(out_dir / "tissues.nii.gz")

@@ -212,7 +212,6 @@ def fit(data: StressData, model: str, mode: str = "uniaxial") -> FitResult:
         rng = (1.0, 1.0)
     else:
         rng = stability.stable_range(law, params, mode)
-    if mu0 > 0:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", stability.UnstableMaterialWarning)
             stability.warn_if_unstable(f"fitted {model}", law, params, mode, lam, rng)

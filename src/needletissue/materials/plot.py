@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import warnings
 from pathlib import Path
 
@@ -10,13 +9,7 @@ import numpy as np
 
 from needletissue.materials import closed_form as cf
 from needletissue.materials import curves, stability
-from needletissue.runinfo import write_atomic
-
-
-def _save(fig, path) -> Path:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=150)
-    return write_atomic(Path(path), buf.getvalue())
+from needletissue.runinfo import save_figure
 
 
 def plot_curves(names=("muscle", "adipose"), mode: str = "uniaxial", stretch_min: float = 0.7,
@@ -53,7 +46,7 @@ def plot_curves(names=("muscle", "adipose"), mode: str = "uniaxial", stretch_min
         ax.grid(alpha=0.3)
     fig.tight_layout()
     if out is not None:
-        _save(fig, out)
+        save_figure(fig, out)
     return fig
 
 
@@ -81,5 +74,5 @@ def plot_fit(result, data, out: str | Path):
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    _save(fig, out)
+    save_figure(fig, out)
     return fig

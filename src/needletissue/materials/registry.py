@@ -76,18 +76,11 @@ class Material:
     def initial_shear_modulus(self) -> float:
         """mu0 in MPa (small-strain shear modulus)."""
         p = self.parameters
-        match self.model:
-            case "elastic":
-                return p["E"] / (2 * (1 + p["nu"]))
-            case "neo_hooke":
-                return float(p["mu"])
-            case "mooney_rivlin" | "mooney_rivlin_5":
-                return 2 * (p["C10"] + p["C01"])
-            case "yeoh":
-                return 2 * p["C10"]
-            case "ogden":
-                return float(sum(_as_list(p["mu"])))
-        raise AssertionError(self.model)
+        if self.model == "elastic":
+            return p["E"] / (2 * (1 + p["nu"]))
+        from needletissue.materials import closed_form
+
+        return closed_form.initial_shear_modulus(self.model, p)
 
     @property
     def bulk(self) -> float:

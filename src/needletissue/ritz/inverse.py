@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 from scipy.optimize import brentq
 
-from needletissue.errors import InputError, check_number
+from needletissue.errors import ConvergenceError, InputError, check_number
 from needletissue.ritz.model import RitzModel
 from needletissue.ritz.solver import DEFAULT_TOL_MM, RitzResult, solve
 
@@ -71,7 +71,8 @@ def force_for_deflection(deflection_mm: float, model: RitzModel | None = None, *
     return Calibration("force", sign * F, sign * F, target, at, model, r, calls[0])
 
 
-_BOUNDS = {"free_length": (None, 2000.0), "diameter": (0.05, 50.0)}
+MAX_FREE_LENGTH_MM = 2000.0
+DIAMETER_RANGE_MM = (0.05, 50.0)
 
 
 def calibrate(parameter: str, force_N: float, deflection_mm: float, model: RitzModel | None = None, *,
@@ -90,12 +91,11 @@ def calibrate(parameter: str, force_N: float, deflection_mm: float, model: RitzM
         raise InputError("deflection_mm", "must be non-zero and have the sign of force_N")
     calls = [0]
     if parameter == "free_length":
-        lo = max(model.tissue_thickness_mm, model.load_point_mm or 0.0)
-        hi = _BOUNDS["free_length"][1]
+        lo = max(model.tissue_thickness_mm, model.load_point_mm or 0.0, 1e-6)
+        hi = MAX_FREE_LENGTH_MM
         make = lambda x: model.replace(free_length_mm=x)  # noqa: E731
-        lo = max(lo, 1e-6)
     elif parameter == "diameter":
-        lo, hi = _BOUNDS["diameter"]
+        lo, hi = DIAMETER_RANGE_MM
         make = lambda x: model.replace(diameter_mm=x)  # noqa: E731
     elif parameter.startswith("k:"):
         name = parameter[2:]
@@ -112,7 +112,7 @@ def calibrate(parameter: str, force_N: float, deflection_mm: float, model: RitzM
     # deflection rises with free length, falls with diameter and k: search in log space
     try:
         flo, fhi = f(lo), f(hi)
-    except Exception as exc:  # a bracket end outside the solver's range
+    except (InputError, ConvergenceError) as exc:  # a bracket end outside the model's or solver's range
         raise InputError(parameter, f"cannot bracket the calibration in [{lo:g}, {hi:g}]: {exc}") from None
     if flo * fhi > 0.0:
         reach = sorted((flo + abs(target), fhi + abs(target)))

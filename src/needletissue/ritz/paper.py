@@ -99,7 +99,7 @@ def plot_consistency(path=None, curve: Curve17 | None = None, rmap: dict | None 
     """Two panels: the (d, l) family reproducing 17.63 mm; w(300)/w(100) against the bound 3."""
     import matplotlib.pyplot as plt
 
-    from needletissue.ritz.plot import save
+    from needletissue.runinfo import save_figure
 
     curve = curve or curve_17_63()
     rmap = rmap or ratio_map()
@@ -127,5 +127,5 @@ def plot_consistency(path=None, curve: Curve17 | None = None, rmap: dict | None 
     b.legend(fontsize=7, loc="lower left")
     b.set_title("(b) hardening springs: response is sub-linear")
     if path is not None:
-        save(fig, path)
+        save_figure(fig, path)
     return fig

@@ -1,10 +1,8 @@
-"""Figures of the Ritz model: the paper's Fig. 5 (v(z) per force) and the w(3F)/w(F) ratio map."""
+"""Figure of the Ritz model: the paper's Fig. 5, v(z) per force (the ratio map is in paper.py)."""
 
 from __future__ import annotations
 
 from pathlib import Path
-
-import numpy as np
 
 
 def plot_deflection(results, path: str | Path | None = None, model=None, ax=None, n: int = 201,
@@ -45,17 +43,8 @@ def plot_deflection(results, path: str | Path | None = None, model=None, ax=None
     ax.legend(fontsize=8, loc="upper left")
     ax.set_title(title or "Needle deflection under the reduction force (Rayleigh-Ritz)")
     if path is not None:
-        save(fig, path)
+        from needletissue.runinfo import save_figure
+
+        save_figure(fig, path)
     return fig
 
-
-def save(fig, path: str | Path) -> Path:
-    """Save a figure atomically (format from the suffix)."""
-    import io
-
-    from needletissue.runinfo import write_atomic
-
-    path = Path(path)
-    buf = io.BytesIO()
-    fig.savefig(buf, format=path.suffix.lstrip(".") or "png", dpi=150)
-    return write_atomic(path, buf.getvalue())

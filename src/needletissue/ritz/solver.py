@@ -8,7 +8,6 @@ ConvergenceError; no unconverged answer is ever returned.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -167,7 +166,7 @@ def parse_order(order) -> tuple[int, bool]:
     return int(order), False
 
 
-def _tables(max_order: int):
+def _tables():
     A, Ad = basis.legendre_tables()
     GX, GW = basis.gauss_tables()
     gphi = np.ascontiguousarray(basis.evaluate(basis.GRID, basis.P_MAX + 1))
@@ -180,7 +179,7 @@ _TABLES = None
 def _run(F, KB, L, Z3, T, K, cos_term, order, auto, max_order, tol, parallel):
     global _TABLES
     if _TABLES is None:
-        _TABLES = _tables(basis.P_MAX)
+        _TABLES = _tables()
     N = F.shape[0]
     pmax = max_order if auto else order
     C = np.empty((N, pmax))
@@ -266,16 +265,15 @@ def _index(i, shape) -> tuple:
     return tuple(int(j) for j in np.unravel_index(i, shape))
 
 
-def _array(field: str, value, n_layers: int | None = None, *, gt=None, ge=None, le=None):
+def _array(field: str, value, *, gt=None):
     a = np.asarray(value, dtype=float)
     bad = ~np.isfinite(a)
     if bad.any():
         raise InputError(field, f"must be finite, got {a[bad].flat[0]} at index "
                          f"{_index(np.flatnonzero(bad)[0], a.shape)}")
-    for op, bound, ok in (("> ", gt, lambda x, b: x > b), (">= ", ge, lambda x, b: x >= b)):
-        if bound is not None and not ok(a, bound).all():
-            i = np.flatnonzero(~ok(a, bound))[0]
-            raise InputError(field, f"must be {op}{bound}, got {a.flat[i]} at index {_index(i, a.shape)}")
+    if gt is not None and not (a > gt).all():
+        i = np.flatnonzero(~(a > gt))[0]
+        raise InputError(field, f"must be > {gt}, got {a.flat[i]} at index {_index(i, a.shape)}")
     return a
 
 
