@@ -88,6 +88,8 @@ def test_check_rejects_inverted_and_missing():
         m.check(surfaces=["gripper"])
     with pytest.raises(InputError, match="missing region 'needle_1'"):
         m.check(regions=["needle_1"])
+    with pytest.raises(InputError, match="has no tetrahedra"):
+        TaggedMesh(m.points, m.cells, {"a": np.arange(len(m.cells)), "b": []}).check()
     with pytest.raises(InputError, match="file not found"):
         TaggedMesh.read("/nonexistent/mesh.msh")
 

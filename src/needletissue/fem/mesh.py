@@ -276,7 +276,9 @@ class TaggedMesh:
             if tri.size and (tri.min() < 0 or tri.max() >= n):
                 raise InputError(f"surface {k!r}", f"node ids must be in [0, {n - 1}]")
         for k, ids in self.regions.items():
-            if ids.size and (ids.min() < 0 or ids.max() >= len(self.cells)):
+            if ids.size == 0:
+                raise InputError(f"region {k!r}", "has no tetrahedra; every region needs >= 1 cell")
+            if ids.min() < 0 or ids.max() >= len(self.cells):
                 raise InputError(f"region {k!r}", f"cell ids must be in [0, {len(self.cells) - 1}]")
         tag = self.region_of_cells()
         if (tag < 0).any():
