@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import tempfile
 import time
 import traceback
@@ -81,6 +82,10 @@ def _run_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext") -> St
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
     from concurrent.futures.process import BrokenProcessPool
+
+    # Native libraries (ITK, VTK) may reset SIGPIPE to its default; a child that dies would then
+    # kill this process through the closed pipe instead of raising BrokenProcessPool.
+    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
 
     with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
         fut = pool.submit(stage.run, cfg, StageContext(ctx.run_dir, ctx.ct, ctx.labels))

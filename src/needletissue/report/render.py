@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import os
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -70,6 +71,10 @@ def isolated(fn, *args):
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
     from concurrent.futures.process import BrokenProcessPool
+
+    # Native libraries (ITK, VTK) may reset SIGPIPE to its default; a child that dies would then
+    # kill this process through the closed pipe instead of raising BrokenProcessPool.
+    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
 
     with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
         try:
