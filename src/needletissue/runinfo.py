@@ -76,9 +76,10 @@ def write_atomic(path: str | Path, data: bytes | str) -> Path:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     except OSError as exc:
         raise _unwritable(path, exc) from None
-    mode = "wb" if isinstance(data, bytes) else "w"
+    if isinstance(data, str):
+        data = data.encode("utf-8")  # reports carry mu, minus signs: never the locale's codec
     try:
-        with os.fdopen(fd, mode) as f:
+        with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
