@@ -83,7 +83,7 @@ def build_model(mesh: BoxMesh, materials: dict[str, object], friction: dict[str,
         solids.append(fem.SolidBody(materials[name], f))
     contact = None
     if interfaces:
-        surface = ContactSurface.build(mesh.points, interfaces, friction, gap=settings.dhat)
+        surface = ContactSurface.build(mesh.points, interfaces, friction, gap=settings.gap)
         contact = FrictionalContact(field, surface, settings)
     return BlockModel(mesh, field, solids, contact)
 
