@@ -187,3 +187,12 @@ def test_bad_input_names_the_field():
     assert resolve_interfaces(mesh, "bonded") == {}
     assert resolve_interfaces(mesh, "paper") == {}  # no needle, muscle or bone in this mesh
     assert resolve_interfaces(mesh, "bonded", {"upper-lower": 0.5}) == {"upper-lower": 0.5}
+
+
+def test_friction_option_parsing():
+    from needletissue.fem.contact import parse_friction
+
+    assert parse_friction(["needle-muscle=0.3", "bone-needle = 0.9"]) == {"needle-muscle": 0.3, "bone-needle": 0.9}
+    for bad in (["needle-muscle"], ["needle-muscle=abc"], ["needle-muscle=-1"], ["=0.3"]):
+        with pytest.raises(InputError, match="friction"):
+            parse_friction(bad)

@@ -163,6 +163,21 @@ def resolve_interfaces(mesh, mode: str = "paper", overrides: dict[str, float] | 
     return chosen
 
 
+def parse_friction(items: list[str]) -> dict[str, float]:
+    """["needle-muscle=0.3", ...] -> {"needle-muscle": 0.3}; InputError names the bad entry."""
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise InputError("--friction", f"expected PAIR=MU like needle-muscle=0.3, got {item!r}")
+        try:
+            mu = float(value)
+        except ValueError:
+            raise InputError("--friction", f"{item!r}: the friction coefficient must be a number") from None
+        out[name.strip()] = check_number(f"--friction {name.strip()}", mu, ge=0)
+    return out
+
+
 @dataclass
 class ContactSurface:
     """The collision surface of all split interfaces (vertex ids index the full mesh)."""
