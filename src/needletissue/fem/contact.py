@@ -224,6 +224,20 @@ class ContactSurface:
         return cls(vertices, faces, offset, side_a, side_b, mu / np.maximum(count, 1), list(interfaces))
 
 
+class _ContactResults(Results):
+    """FElupe calls update_statevars() after a converged Newton solve: accept the displacements as
+    the new slip reference and, for lag="step", refresh the lagged normal forces/tangent bases."""
+
+    def __init__(self, item):
+        super().__init__()
+        self._item = item
+
+    def update_statevars(self):
+        super().update_statevars()
+        if self._item.settings.lag == "step":
+            self._item.update_lag()
+
+
 class FrictionalContact:
     """FElupe item: IPC barrier contact + lagged smoothed friction on split interfaces.
 
@@ -259,7 +273,7 @@ class FrictionalContact:
         self.tangential = ipctk.TangentialCollisions()
         nv = len(surface.vertices)
         self.dofs = (3 * surface.vertices[:, None] + np.arange(3)).ravel()
-        self.results = Results()
+        self.results = _ContactResults(self)
         self.results.statevars = np.zeros((nv, 3))
         self.results.info = {}
         self._lagged = None  # (vertices, collisions) of the last converged step for lag="step"

@@ -152,8 +152,6 @@ def solve_steps(model: BlockModel, boundaries: dict, apply, factors, *, initial_
                 loaded = trial
                 step = min(step * 1.5, 1.0)
                 last_iter = res.iterations
-                if model.contact is not None and model.contact.settings.lag == "step":
-                    model.contact.update_lag()
             else:
                 for f, v in zip(field.fields, saved):
                     f.values[:] = v
