@@ -128,13 +128,11 @@ class NeedleModelResult:
 
 
 def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Path | None = None, *,
-                     mesh_path: str | Path | None = None, items=(), contact=None) -> NeedleModelResult:
+                     mesh_path: str | Path | None = None, items=()) -> NeedleModelResult:
     """Mesh, solve every force of `config.forces` on one load path, post-process; with `out_dir`
     write the mesh, one VTU per force, results.json, config.toml, versions.json and the figures.
 
-    `items` are extra FElupe items assembled with the bodies. `contact` (a
-    `needletissue.fem.contact_needle.NeedleContact`) splits its interfaces before the model is built
-    and adds its contact item.
+    `items` are extra FElupe items assembled with the bodies (the contact model passes its own).
     """
     import tempfile
 
@@ -151,12 +149,8 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
         mesh = TaggedMesh.read(msh)
     t_mesh = time.perf_counter() - t0
     mesh.check(regions=g.regions(), surfaces=("bone_fixed", "tissue_far", "gripper"))
-    if contact is not None:
-        mesh = contact.prepare(mesh)
     model = FEModel(mesh, {r: MATERIALS[r] for r in mesh.regions}, order=cfg.order,
                     formulation=cfg.formulation)
-    if contact is not None:
-        items = (*items, *contact.items(model))
     fmax = max(cfg.forces)
     bcs = [Fixed("bone_fixed")]
     if cfg.tissue_far == "fixed":
