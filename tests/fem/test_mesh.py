@@ -90,3 +90,31 @@ def test_check_rejects_inverted_and_missing():
         m.check(regions=["needle_1"])
     with pytest.raises(InputError, match="file not found"):
         TaggedMesh.read("/nonexistent/mesh.msh")
+
+
+def test_gmsh_tetra10_node_order(tmp_path):
+    """gmsh order-2 meshes (curved) read from the live model and from .msh agree, in VTK order:
+    every midside node lies near its own edge's centre (a swapped 8/9 would put it an edge away)."""
+    import gmsh
+
+    gmsh.initialize(["-nt", "1"])
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        v = gmsh.model.occ.addCylinder(0, 0, 0, 10, 0, 0, 2)
+        gmsh.model.occ.synchronize()
+        gmsh.model.addPhysicalGroup(3, [v], name="needle")
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 1.5)
+        gmsh.model.mesh.generate(3)
+        gmsh.model.mesh.setOrder(2)
+        live = TaggedMesh.from_gmsh()
+        gmsh.write(str(tmp_path / "c.msh"))
+    finally:
+        gmsh.finalize()
+    m = TaggedMesh.read(tmp_path / "c.msh")
+    assert np.array_equal(live.cells, m.cells) and np.allclose(live.points, m.points)
+    e = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
+    p = m.points
+    offset = np.linalg.norm(p[m.cells[:, 4:]] - 0.5 * (p[m.cells[:, e[:, 0]]] + p[m.cells[:, e[:, 1]]]), axis=-1)
+    edge = np.linalg.norm(p[m.cells[:, e[:, 0]]] - p[m.cells[:, e[:, 1]]], axis=-1)
+    assert (offset / edge).max() < 0.15  # curved boundary edges bow a little, never a whole edge
+    assert (offset > 1e-6).any()  # and some are curved (on the cylinder)

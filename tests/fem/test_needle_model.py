@@ -30,10 +30,28 @@ def cli_run(tmp_path_factory):
     return json.loads(res.stdout), out
 
 
+HOOK_CALLS = []
+
+
 @pytest.fixture(scope="module")
 def one_needle():
     cfg = NeedleModelConfig(geometry=NeedleGeometry(needles=1, **COARSE), forces=(F_SMALL,), tissue_far="free")
-    return run_needle_model(cfg)
+
+    def mesh_hook(mesh):
+        HOOK_CALLS.append(("mesh", set(mesh.surfaces)))
+        return mesh
+
+    def items(model):
+        HOOK_CALLS.append(("items", model.ndof))
+        return ()
+
+    return run_needle_model(cfg, mesh_hook=mesh_hook, items=items)
+
+
+def test_contact_hooks_see_the_named_interfaces(one_needle):
+    (k1, surfaces), (k2, ndof) = HOOK_CALLS
+    assert (k1, k2) == ("mesh", "items") and ndof > 0
+    assert {"needle_muscle", "needle_bone", "muscle_bone"} <= surfaces
 
 
 def _shear_from_curve(z, v, g):

@@ -33,3 +33,32 @@ def test_rigid_body_modes_are_null_space():
     K = model.bodies["needle"].assemble.matrix()
     B = linsolve.rigid_body_modes(mesh.points)
     assert np.abs(K @ B).max() < 1e-9 * abs(K).max()
+
+
+@pytest.mark.parametrize("name", ["scipy", "pardiso", "amg"])
+def test_bad_systems_raise_linalgerror(name):
+    """NaN residuals and singular matrices become LinAlgError, which solve() turns into a cut-back."""
+    import scipy.sparse as sp
+
+    s = linsolve.make(name, np.zeros((2, 3)), np.arange(6))
+    A = sp.identity(6, format="csr")
+    with pytest.raises(np.linalg.LinAlgError):
+        s(A, np.full(6, np.nan))
+    with pytest.raises(np.linalg.LinAlgError):
+        s(sp.csr_matrix((6, 6)), np.ones(6))
+
+
+def test_amg_handles_nonsymmetric_tangent():
+    """A frictional contact makes the tangent non-symmetric: AMG switches from CG to GMRES."""
+    import scipy.sparse as sp
+
+    mesh = TaggedMesh.box((10, 4, 4), (8, 3, 3), region="needle")
+    model = FEModel(mesh, {"needle": "needle"})
+    K = model.bodies["needle"].assemble.matrix().tocsr()
+    free = np.arange(9, K.shape[0])  # drop the first 3 nodes: no rigid-body modes left
+    A = K[free][:, free]
+    A = (A + 1e-3 * abs(A).max() * sp.random(*A.shape, density=1e-3, random_state=0, format="csr")).tocsr()
+    assert abs(A - A.T).max() > 0  # non-symmetric
+    b = np.random.default_rng(0).normal(size=A.shape[0])
+    x = linsolve.make("amg", mesh.points, free)(A, b)
+    assert np.linalg.norm(A @ x - b) < 1e-6 * np.linalg.norm(b)

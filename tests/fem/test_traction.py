@@ -63,5 +63,10 @@ def test_cli_json_and_plot(tmp_path):
     assert d["material"] == "adipose" and len(d["fe_nominal_stress_MPa"]) == len(d["displacement_mm"]) >= 11
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert json.loads((tmp_path / "run" / "results.json").read_text())["rmse_MPa"] == d["rmse_MPa"]
+    # without --out the run files go next to the figure
+    res2 = CliRunner().invoke(app, ["validate", "traction", "--material", "muscle", "--elements", "1",
+                                    "--plot", str(tmp_path / "fig" / "m.png")])
+    assert res2.exit_code == 0, res2.output
+    assert {p.name for p in (tmp_path / "fig").iterdir()} >= {"m.png", "config.toml", "versions.json", "results.json"}
     bad = CliRunner().invoke(app, ["validate", "traction", "--material", "bone"])
     assert bad.exit_code != 0

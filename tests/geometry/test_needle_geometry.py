@@ -139,7 +139,7 @@ def test_needle_axis_nodes(built):
 
 
 def test_mesh_is_reproducible(tmp_path):
-    g = NeedleGeometry(**COARSE)
+    g = NeedleGeometry(**{**COARSE, "needle_mesh_size": 2.5})
     a = mesh_needle_model(g, tmp_path / "a.msh")
     b = mesh_needle_model(g, tmp_path / "b.msh")
     assert (a.nodes, a.tetrahedra) == (b.nodes, b.tetrahedra)

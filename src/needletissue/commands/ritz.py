@@ -144,11 +144,10 @@ def _table(out):
     t = Table(title=f"Ritz needle: d={m['diameter_mm']:g} mm, l={m['free_length_mm']:g} mm, "
               f"z3={m['load_point_mm']:g} mm, E={m['youngs_modulus_MPa']:g} MPa; {layers}; "
               f"cos term {'on' if m['cos_term'] else 'off'}")
-    for col in ("F [N]", "tip [mm]", "load pt [mm]", "max [mm]", "tip slope [rad]", "order", "Newton it",
-                "error est. [mm]", "converged"):
-        t.add_column(col, justify="right")
+    for col in ("F N", "tip mm", "load mm", "max mm", "slope rad", "p", "it", "err mm", "conv"):
+        t.add_column(col, justify="right", no_wrap=True)
     for r in out["results"]:
         t.add_row(f"{r['force_N']:g}", f"{r['tip_deflection_mm']:.4f}", f"{r['load_point_deflection_mm']:.4f}",
-                  f"{r['max_deflection_mm']:.4f}", f"{r['tip_slope_rad']:.5f}", str(r["order"]),
-                  str(r["iterations"]), f"{r['error_estimate_mm']:.2e}", str(r["converged"]))
+                  f"{r['max_deflection_mm']:.4f}", f"{r['tip_slope_rad']:.4f}", str(r["order"]),
+                  str(r["iterations"]), f"{r['error_estimate_mm']:.1e}", "yes" if r["converged"] else "no")
     Console().print(t)

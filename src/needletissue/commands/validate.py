@@ -16,7 +16,8 @@ def traction(
     material: str = typer.Option(..., "--material", help="Tissue: muscle or adipose."),
     as_json: bool = typer.Option(False, "--json", help="Print the results as JSON on stdout."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write the stress-displacement figure (PNG)."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Folder for config.toml, versions.json, results.json."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder for config.toml, versions.json, results.json "
+                                       "(default with --plot: the figure's folder)."),
     width: float = typer.Option(20.0, help="Block cross-section side, mm."),
     height: float = typer.Option(20.0, help="Block height (gauge length), mm; max stretch = 1 + 10 mm / height."),
     max_displacement: float = typer.Option(10.0, help="Top displacement at the end of the pull, mm."),
@@ -48,6 +49,7 @@ def traction(
     res = tr.run(cfg, progress=progress)
     if plot is not None:
         tr.plot(res, plot)
+        out = out if out is not None else (plot.parent if str(plot.parent) else Path("."))  # run files next to the figure
     if out is not None:
         write_run_files(out, cfg, res.to_dict())
     if as_json:

@@ -128,11 +128,13 @@ class NeedleModelResult:
 
 
 def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Path | None = None, *,
-                     mesh_path: str | Path | None = None, items=()) -> NeedleModelResult:
+                     mesh_path: str | Path | None = None, items=(), mesh_hook=None) -> NeedleModelResult:
     """Mesh, solve every force of `config.forces` on one load path, post-process; with `out_dir`
     write the mesh, one VTU per force, results.json, config.toml, versions.json and the figures.
 
-    `items` are extra FElupe items assembled with the bodies (the contact model passes its own).
+    Hooks for the frictional-contact model: `mesh_hook(TaggedMesh) -> TaggedMesh` runs on the mesh
+    before the FE model is built (e.g. to split the interface surfaces); `items` is a sequence of
+    extra FElupe items or a callable `items(FEModel) -> sequence` (built once the model exists).
     """
     import tempfile
 
@@ -148,6 +150,8 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
         info = mesh_needle_model(g, msh, order=cfg.order)  # order 2: midside nodes on the true cylinder
         mesh = TaggedMesh.read(msh)
     t_mesh = time.perf_counter() - t0
+    if mesh_hook is not None:
+        mesh = mesh_hook(mesh)
     mesh.check(regions=g.regions(), surfaces=("bone_fixed", "tissue_far", "gripper"))
     model = FEModel(mesh, {r: MATERIALS[r] for r in mesh.regions}, order=cfg.order,
                     formulation=cfg.formulation)
@@ -156,8 +160,9 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     if cfg.tissue_far == "fixed":
         bcs.append(Fixed("tissue_far"))
     bcs.append(SurfaceForce("gripper", total=tuple(fmax * np.asarray(cfg.direction))))
+    extra = tuple(items(model) if callable(items) else items)
     fe_results = solve(model, bcs, load_factors=[f / fmax for f in cfg.forces], solver=cfg.solver,
-                       items=items, progress=cfg.progress)
+                       items=extra, progress=cfg.progress)
     t_solve = time.perf_counter() - t0 - t_mesh
 
     used = model.mesh                         # tetra10 when order=2
@@ -222,7 +227,7 @@ def ritz_model(g: NeedleGeometry):
 
 def _ritz_tips(cfg: NeedleModelConfig) -> dict[float, dict[str, object]]:
     """Ritz solutions at the full force (the paper's comparison) and at the force per needle."""
-    from needletissue.ritz.solve import solve
+    from needletissue.ritz import solve
 
     model = ritz_model(cfg.geometry)
     out = {}

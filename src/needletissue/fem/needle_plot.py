@@ -25,9 +25,10 @@ def plot_deformed(result, path: Path, scale: float = 1.0) -> Path:
     grid.point_data["u"] = fe.displacement
     grid.cell_data["region"] = fe.cell_data["region"]
     # Cut at y = 0 in the reference configuration (shows the needles inside the tissue), then warp.
-    clipped = grid.clip(normal="y", origin=(0, 0, 0), invert=True, crinkle=True).warp_by_vector("u", factor=scale)
+    clipped = grid.clip(normal="y", origin=(0, 0, 0), invert=False, crinkle=True).warp_by_vector("u", factor=scale)
     pl = pv.Plotter(off_screen=True, window_size=(1400, 1000))
-    pl.add_mesh(clipped, scalars="|u| (mm)", cmap="viridis", show_edges=False)
+    pl.add_mesh(clipped, scalars="|u| (mm)", cmap="viridis", show_edges=False,
+                scalar_bar_args={"vertical": True, "position_x": 0.88, "position_y": 0.2})
     pl.add_mesh(clipped.extract_feature_edges(), color="black", line_width=0.5, opacity=0.3)
     pl.add_text(f"{r.force_N:g} N, deformed x{scale:g}: max needle deformation "
                 f"{r.max_needle_deformation_mm:.2f} mm", font_size=12)

@@ -200,6 +200,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 newton_s += time.perf_counter() - ts
                 if ok:
                     field.link(res.x)
+                    last_fun = res.fun  # residual at the converged state: reactions, no re-assembly
                     last_du = [f.values - v for f, v in zip(field.fields, saved)]
                     last_dl = dl
                     lam += dl
@@ -229,9 +230,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                         f"{dl:.3g} failed and halving it would go below min_step={min_step:g} "
                         f"({nsteps} steps, {nit} Newton iterations, {ncut} cut-backs; last: {why or 'max iterations'})")
             if results:
-                # residual at the converged state for reactions
-                fvec = fem.tools._newton.fun_items(all_items, field)
-                out.append(_result(model, loads, fvec, target, nsteps, nit, ncut, time.perf_counter() - t0,
+                out.append(_result(model, loads, last_fun, target, nsteps, nit, ncut, time.perf_counter() - t0,
                                    linear, newton_s, norms))
             else:
                 out.append(FEResult(target, field[0].values.copy(), {}, {}, nsteps, nit, time.perf_counter() - t0,

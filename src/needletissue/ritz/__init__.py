@@ -11,8 +11,8 @@ The solver (Numba) is imported on first use so that `needletissue --help` stays 
 from needletissue.ritz.model import DEFAULT_LAYERS, NEEDLE_E_MPA, Layer, RitzModel
 
 _LAZY = {
-    "DEFAULT_TOL_MM": "solve", "BatchResult": "solve", "RitzResult": "solve", "parse_order": "solve",
-    "solve": "solve", "solve_batch": "solve", "solve_forces": "solve",
+    "DEFAULT_TOL_MM": "solver", "BatchResult": "solver", "RitzResult": "solver", "parse_order": "solver",
+    "solve": "solver", "solve_batch": "solver", "solve_forces": "solver",
     "Calibration": "inverse", "calibrate": "inverse", "force_for_deflection": "inverse",
     "vesic_k": "foundation", "plot_deflection": "plot",
 }
@@ -24,5 +24,7 @@ def __getattr__(name):
     if name in _LAZY:
         import importlib
 
-        return getattr(importlib.import_module(f"needletissue.ritz.{_LAZY[name]}"), name)
+        value = getattr(importlib.import_module(f"needletissue.ritz.{_LAZY[name]}"), name)
+        globals()[name] = value
+        return value
     raise AttributeError(f"module 'needletissue.ritz' has no attribute {name!r}")

@@ -14,7 +14,7 @@ from scipy.optimize import brentq
 
 from needletissue.errors import InputError, check_number
 from needletissue.ritz.model import RitzModel
-from needletissue.ritz.solve import DEFAULT_TOL_MM, RitzResult, solve
+from needletissue.ritz.solver import DEFAULT_TOL_MM, RitzResult, solve
 
 MAX_FORCE_N = 1e5
 _XTOL = 1e-12

@@ -190,7 +190,8 @@ def _newton(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, wk):
             g, g2 = g2, g
             H, H2 = H2, H
             pi, eb, es, w = pt, ebt, est, wt
-            if pd and dn <= _RTOL * cn + _ATOL:
+            # converged: a tiny Newton step, or a Newton decrement below the round-off of Pi
+            if pd and (dn <= _RTOL * cn + _ATOL or -slope <= 1e-15 * scale):
                 return it + 1, OK
             continue
         t = 0.5
@@ -309,6 +310,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
         p = order
         it, st = _newton(p, c, F[m], KB[m], L[m], Z3[m], T[m], K[m], cos_term, A, Ad, GX, GW, wk)
         est = np.inf
+        prev = np.inf  # change from order p - 1 to p
         while st == OK:
             # error estimate: sup-norm change of v on the grid when the order is raised by one
             for i in range(pmax):
@@ -325,8 +327,15 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
                 for i in range(p - 1):
                     dv += (c2[i] - c[i]) * gphi[k, i]
                 est = max(est, abs(dv))
-            if not auto or est <= tol or p >= pmax:
+            if not auto:
                 break
+            # auto: stop when the changes to AND from order p are both below tol (one small change
+            # alone can be a parity accident of the basis), or at the highest order
+            if (est <= tol and prev <= tol) or p >= pmax:
+                if prev < np.inf:
+                    est = max(est, prev)
+                break
+            prev = est
             for i in range(pmax):
                 c[i] = c2[i]
             p += 1

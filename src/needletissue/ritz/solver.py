@@ -195,8 +195,8 @@ def _run(F, KB, L, Z3, T, K, cos_term, order, auto, max_order, tol, parallel):
         fn, chunks = kernel.solve_serial, 1
     fn(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, *_TABLES, C, S, R, chunks)
     status = S[:, kernel.STATUS]
-    bad = np.flatnonzero(status != kernel.OK)
-    if bad.size:
+    if status.any():
+        bad = np.flatnonzero(status != kernel.OK)
         m = bad[0]
         why = {kernel.MAX_ITER: "iteration limit", kernel.LINE_SEARCH: "line search failed",
                kernel.NOT_FINITE: "non-finite energy"}[int(status[m])]
@@ -262,17 +262,20 @@ def solve_forces(forces, model: RitzModel | None = None, order=3, tol_mm: float 
     return [_result(F, C, S, R, model, m, tol) for m in range(N)]
 
 
+def _index(i, shape) -> tuple:
+    return tuple(int(j) for j in np.unravel_index(i, shape))
+
+
 def _array(field: str, value, n_layers: int | None = None, *, gt=None, ge=None, le=None):
     a = np.asarray(value, dtype=float)
     bad = ~np.isfinite(a)
     if bad.any():
         raise InputError(field, f"must be finite, got {a[bad].flat[0]} at index "
-                         f"{np.unravel_index(np.flatnonzero(bad)[0], a.shape)}")
+                         f"{_index(np.flatnonzero(bad)[0], a.shape)}")
     for op, bound, ok in (("> ", gt, lambda x, b: x > b), (">= ", ge, lambda x, b: x >= b)):
         if bound is not None and not ok(a, bound).all():
             i = np.flatnonzero(~ok(a, bound))[0]
-            raise InputError(field, f"must be {op}{bound}, got {a.flat[i]} at index "
-                             f"{np.unravel_index(i, a.shape)}")
+            raise InputError(field, f"must be {op}{bound}, got {a.flat[i]} at index {_index(i, a.shape)}")
     return a
 
 
@@ -331,6 +334,8 @@ def solve_batch(force, *, diameter_mm=None, free_length_mm=None, youngs_modulus_
             raise InputError("load_point_mm", f"must be in (0, free_length_mm], got {Z3[m]} > {l[m]} "
                              f"at index {m}")
     KB = E * (np.pi * d**4 / 64.0) / l**3
+    # one compiled signature only: C-contiguous, writeable float64 (broadcast views are read-only)
+    F, KB, l, Z3, T, K = (np.require(a, np.float64, ["C", "W"]) for a in (F, KB, l, Z3, T, K))
     C, S, R = _run(F, KB, l, Z3, T, K, model.cos_term, p, auto, max_order, tol, parallel)
     return BatchResult(
         force_N=F,
