@@ -62,13 +62,13 @@ def register(app: typer.Typer, groups) -> None:
                                   far_mesh_size=far_mesh_size)
         cfg = NeedleModelConfig(geometry=geometry, forces=tuple(force or (100.0, 200.0, 300.0)), direction=dvec,
                                 order=order, ritz=not no_ritz, progress=not json_out)
-        contact = None
+        hooks = {}
         if interfaces != "bonded" or friction:
             from needletissue.fem.contact import parse_friction
             from needletissue.fem.contact_needle import NeedleContact
 
-            contact = NeedleContact(interfaces, parse_friction(friction or []))
-        result = run_needle_model(cfg, out, contact=contact)
+            hooks = NeedleContact(interfaces, parse_friction(friction or [])).hooks()
+        result = run_needle_model(cfg, out, **hooks)
         if json_out:
             from needletissue.runinfo import to_jsonable
 

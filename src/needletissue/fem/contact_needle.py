@@ -1,8 +1,8 @@
 """The needle model with the paper's frictional interfaces beside the bonded one.
 
-``NeedleContact`` plugs into ``needletissue.fem.needle.run_needle_model(config, contact=...)``: it
-splits the chosen interfaces of the (conforming) needle mesh before the FE model is built and adds
-the ``FrictionalContact`` item. ``compare_interfaces`` runs the bonded and the contact model on the
+``NeedleContact`` plugs into ``run_needle_model(config, **contact.hooks())`` (the needle model's
+``mesh_hook``/``items`` hooks): it splits the chosen interfaces of the (conforming) needle mesh before
+the FE model is built and adds one ``FrictionalContact`` item per interface. ``compare_interfaces`` runs the bonded and the contact model on the
 same mesh and reports, per force, the needle and tissue deformation, the gap that opens at each
 interface (behind the needle) and the change in the theory-FE (Rayleigh-Ritz) difference.
 """
@@ -35,6 +35,18 @@ class NeedleContact:
     item: FrictionalContact | None = field(default=None, init=False)
     item_list: list = field(default_factory=list, init=False)
     _split: list = field(default_factory=list, init=False, repr=False)
+
+    def __post_init__(self):
+        from needletissue.errors import InputError, check_number
+
+        if self.interfaces not in ("bonded", "paper"):  # fail before meshing
+            raise InputError("interfaces", f"must be 'bonded' or 'paper', got {self.interfaces!r}")
+        for name, mu in self.overrides.items():
+            check_number(f"interfaces.{name}", mu, ge=0)
+
+    def hooks(self) -> dict:
+        """Keyword arguments for run_needle_model."""
+        return {"mesh_hook": self.prepare, "items": self.items}
 
     def prepare(self, mesh):
         self.friction = resolve_interfaces(mesh, self.interfaces, self.overrides)
@@ -103,7 +115,7 @@ def compare_interfaces(config=None, interfaces: str = "paper", overrides=None,
     t_bonded = time.perf_counter() - t0
     contact = NeedleContact(interfaces, dict(overrides or {}), settings)
     t0 = time.perf_counter()
-    with_contact = run_needle_model(cfg, contact=contact)
+    with_contact = run_needle_model(cfg, **contact.hooks())
     t_contact = time.perf_counter() - t0
     rows = []
     for b, c in zip(bonded.results, with_contact.results):
