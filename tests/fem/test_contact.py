@@ -212,3 +212,13 @@ def test_split_quadratic_mesh_keeps_midside_nodes_with_their_side():
     assert not lower & upper
     # every side-b face node is a copy at the same place as its side-a twin
     assert np.allclose(split.points[itf.nodes_b], mesh.points[itf.nodes_a])
+
+
+def test_needle_contact_rejects_bad_options_before_meshing():
+    from needletissue.fem.contact_needle import NeedleContact
+
+    with pytest.raises(InputError, match="interfaces"):
+        NeedleContact("glued")
+    with pytest.raises(InputError, match="needle-muscle"):
+        NeedleContact("paper", {"needle-muscle": -0.3})
+    assert set(NeedleContact("paper").hooks()) == {"mesh_hook", "items"}
