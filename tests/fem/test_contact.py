@@ -187,3 +187,38 @@ def test_bad_input_names_the_field():
     assert resolve_interfaces(mesh, "bonded") == {}
     assert resolve_interfaces(mesh, "paper") == {}  # no needle, muscle or bone in this mesh
     assert resolve_interfaces(mesh, "bonded", {"upper-lower": 0.5}) == {"upper-lower": 0.5}
+
+
+def test_friction_option_parsing():
+    from needletissue.fem.contact import parse_friction
+
+    assert parse_friction(["needle-muscle=0.3", "bone-needle = 0.9"]) == {"needle-muscle": 0.3, "bone-needle": 0.9}
+    for bad in (["needle-muscle"], ["needle-muscle=abc"], ["needle-muscle=-1"], ["=0.3"]):
+        with pytest.raises(InputError, match="friction"):
+            parse_friction(bad)
+
+
+def test_split_quadratic_mesh_keeps_midside_nodes_with_their_side():
+    from needletissue.fem import TaggedMesh
+
+    box = stacked_boxes({"lower": ((0, 0, -5), (10, 10, 0)), "upper": ((0, 0, 0), (10, 10, 10))}, 2.5)
+    mesh = TaggedMesh(points=box.points, cells=box.cells, regions=box.regions, surfaces={}).to_quadratic()
+    split, (itf,) = split_interfaces(mesh, ["lower-upper"])
+    on_plane = np.flatnonzero(np.isclose(mesh.points[:, 2], 0.0))  # corner and midside nodes at z = 0
+    assert len(split.points) == len(mesh.points) + len(on_plane)
+    assert itf.faces_a.shape[1] == 6
+    lower = set(np.unique(split.cells[split.regions["lower"]]))
+    upper = set(np.unique(split.cells[split.regions["upper"]]))
+    assert not lower & upper
+    # every side-b face node is a copy at the same place as its side-a twin
+    assert np.allclose(split.points[itf.nodes_b], mesh.points[itf.nodes_a])
+
+
+def test_needle_contact_rejects_bad_options_before_meshing():
+    from needletissue.fem.contact_needle import NeedleContact
+
+    with pytest.raises(InputError, match="interfaces"):
+        NeedleContact("glued")
+    with pytest.raises(InputError, match="needle-muscle"):
+        NeedleContact("paper", {"needle-muscle": -0.3})
+    assert set(NeedleContact("paper").hooks()) == {"mesh_hook", "items"}

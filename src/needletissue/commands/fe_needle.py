@@ -39,6 +39,12 @@ def register(app: typer.Typer, groups) -> None:
         out: Optional[Path] = typer.Option(None, "--out", help="Output folder: mesh, VTU per force, "
                                            "results.json, config.toml, versions.json, figures."),
         json_out: bool = typer.Option(False, "--json", help="Print the results JSON to stdout."),
+        interfaces: str = typer.Option("bonded", "--interfaces", help="bonded (one conforming mesh) or "
+                                       "paper (frictional contact: needle-muscle 0.3, muscle-bone 0.3, "
+                                       "bone-needle 0.9; docs/contact.md)."),
+        friction: Optional[List[str]] = typer.Option(None, "--friction", help="Per-pair friction "
+                                                     "coefficient (>= 0, dimensionless), e.g. "
+                                                     "needle-muscle=0.3; repeat; makes that pair a contact."),
     ):
         """Solve the needle-tissue-bone model at each force; report needle, clamp and tissue deformation
         and the Rayleigh-Ritz comparison. Units: mm, N, MPa."""
@@ -56,7 +62,13 @@ def register(app: typer.Typer, groups) -> None:
                                   far_mesh_size=far_mesh_size)
         cfg = NeedleModelConfig(geometry=geometry, forces=tuple(force or (100.0, 200.0, 300.0)), direction=dvec,
                                 order=order, ritz=not no_ritz, progress=not json_out)
-        result = run_needle_model(cfg, out)
+        hooks = {}
+        if interfaces != "bonded" or friction:
+            from needletissue.fem.contact import parse_friction
+            from needletissue.fem.contact_needle import NeedleContact
+
+            hooks = NeedleContact(interfaces, parse_friction(friction or [])).hooks()
+        result = run_needle_model(cfg, out, **hooks)
         if json_out:
             from needletissue.runinfo import to_jsonable
 

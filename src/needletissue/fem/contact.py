@@ -10,8 +10,9 @@ Modelling choices (details and the reasons in docs/contact.md):
 
 * Interfaces come from a conforming mesh split by ``contact_mesh.split_interfaces``; the two sides
   start coincident. The barrier needs a positive distance, so side b's collision vertices are shifted
-  by ``dhat`` along side a's outward normal: zero physical gap is the barrier's activation distance,
-  and the physical interpenetration is bounded by ``dhat`` (the barrier diverges before it).
+  by ``gap = 0.9 dhat`` along side a's outward normal: zero physical gap is (almost) the barrier's
+  activation distance, and the physical interpenetration is bounded by ``gap < dhat`` (the barrier
+  diverges before it).
 * Area-weighted ("convergent") barrier: ``stiffness`` is a contact stiffness per area (MPa/mm), so the
   contact pressure does not depend on the mesh size.
 * Friction (Li et al. 2020, IPC): slip is the displacement since the last converged step; the normal
@@ -50,6 +51,9 @@ class ContactSettings:
     youngs_modulus: modulus of the softer body, MPa, used only for the default stiffness.
     eps_v: slip below which friction is smoothed (static regime), mm per load step.
     lag: "iteration" (refresh normal forces/tangent bases at every residual) or "step".
+    gap_fraction: the coincident sides start gap_fraction * dhat apart for the barrier: < 1 keeps
+      the barrier slightly active at rest (a tiny prestress, but a positive contact stiffness, so a
+      body held only by contact is not singular at the first iteration).
     """
 
     dhat: float = 1e-2
@@ -57,6 +61,7 @@ class ContactSettings:
     youngs_modulus: float = 1.0
     eps_v: float = 1e-3
     lag: str = "step"
+    gap_fraction: float = 0.9
 
     def __post_init__(self):
         check_number("contact.dhat", self.dhat, gt=0)
@@ -64,8 +69,14 @@ class ContactSettings:
         check_number("contact.eps_v", self.eps_v, gt=0)
         if self.stiffness is not None:
             check_number("contact.stiffness", self.stiffness, gt=0)
+        check_number("contact.gap_fraction", self.gap_fraction, gt=0, le=1)
         if self.lag not in ("iteration", "step"):
             raise InputError("contact.lag", f"must be 'iteration' or 'step', got {self.lag!r}")
+
+    @property
+    def gap(self) -> float:
+        """Virtual initial gap of the split interfaces (mm)."""
+        return self.gap_fraction * self.dhat
 
     @property
     def kappa(self) -> float:
@@ -152,6 +163,21 @@ def resolve_interfaces(mesh, mode: str = "paper", overrides: dict[str, float] | 
     return chosen
 
 
+def parse_friction(items: list[str]) -> dict[str, float]:
+    """["needle-muscle=0.3", ...] -> {"needle-muscle": 0.3}; InputError names the bad entry."""
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise InputError("--friction", f"expected PAIR=MU like needle-muscle=0.3, got {item!r}")
+        try:
+            mu = float(value)
+        except ValueError:
+            raise InputError("--friction", f"{item!r}: the friction coefficient must be a number") from None
+        out[name.strip()] = check_number(f"--friction {name.strip()}", mu, ge=0)
+    return out
+
+
 @dataclass
 class ContactSurface:
     """The collision surface of all split interfaces (vertex ids index the full mesh)."""
@@ -198,6 +224,20 @@ class ContactSurface:
         return cls(vertices, faces, offset, side_a, side_b, mu / np.maximum(count, 1), list(interfaces))
 
 
+class _ContactResults(Results):
+    """FElupe calls update_statevars() after a converged Newton solve: accept the displacements as
+    the new slip reference and, for lag="step", refresh the lagged normal forces/tangent bases."""
+
+    def __init__(self, item):
+        super().__init__()
+        self._item = item
+
+    def update_statevars(self):
+        super().update_statevars()
+        if self._item.settings.lag == "step":
+            self._item.update_lag()
+
+
 class FrictionalContact:
     """FElupe item: IPC barrier contact + lagged smoothed friction on split interfaces.
 
@@ -233,7 +273,7 @@ class FrictionalContact:
         self.tangential = ipctk.TangentialCollisions()
         nv = len(surface.vertices)
         self.dofs = (3 * surface.vertices[:, None] + np.arange(3)).ravel()
-        self.results = Results()
+        self.results = _ContactResults(self)
         self.results.statevars = np.zeros((nv, 3))
         self.results.info = {}
         self._lagged = None  # (vertices, collisions) of the last converged step for lag="step"
@@ -339,7 +379,7 @@ class FrictionalContact:
         return {
             "active_contacts": len(c),
             "min_distance_mm": float(dmin),
-            "max_interpenetration_mm": float(max(0.0, self.settings.dhat - dmin)),
+            "max_interpenetration_mm": float(max(0.0, self.settings.gap - dmin)),
         }
 
     def contact_forces(self) -> np.ndarray:

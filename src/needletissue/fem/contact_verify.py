@@ -83,7 +83,7 @@ def build_model(mesh: BoxMesh, materials: dict[str, object], friction: dict[str,
         solids.append(fem.SolidBody(materials[name], f))
     contact = None
     if interfaces:
-        surface = ContactSurface.build(mesh.points, interfaces, friction, gap=settings.dhat)
+        surface = ContactSurface.build(mesh.points, interfaces, friction, gap=settings.gap)
         contact = FrictionalContact(field, surface, settings)
     return BlockModel(mesh, field, solids, contact)
 
@@ -152,8 +152,6 @@ def solve_steps(model: BlockModel, boundaries: dict, apply, factors, *, initial_
                 loaded = trial
                 step = min(step * 1.5, 1.0)
                 last_iter = res.iterations
-                if model.contact is not None and model.contact.settings.lag == "step":
-                    model.contact.update_lag()
             else:
                 for f, v in zip(field.fields, saved):
                     f.values[:] = v

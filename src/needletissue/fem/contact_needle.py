@@ -1,0 +1,141 @@
+"""The needle model with the paper's frictional interfaces beside the bonded one.
+
+``NeedleContact`` plugs into ``run_needle_model(config, **contact.hooks())`` (the needle model's
+``mesh_hook``/``items`` hooks): it splits the chosen interfaces of the (conforming) needle mesh before
+the FE model is built and adds one ``FrictionalContact`` item per interface. ``compare_interfaces`` runs the bonded and the contact model on the
+same mesh and reports, per force, the needle and tissue deformation, the gap that opens at each
+interface (behind the needle) and the change in the theory-FE (Rayleigh-Ritz) difference.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from needletissue.fem.contact import ContactSettings, ContactSurface, FrictionalContact, resolve_interfaces
+from needletissue.fem.contact_mesh import split_interfaces
+
+
+@dataclass
+class NeedleContact:
+    """Interfaces of the needle model as contact pairs.
+
+    interfaces: "paper" (needle-muscle 0.3, muscle-bone 0.3, bone-needle 0.9 where present) or
+    "bonded"; overrides: {"needle-muscle": 0.5, ...} friction coefficients (>= 0) per pair.
+    settings: ContactSettings (dhat mm, barrier stiffness MPa/mm, eps_v mm); its youngs_modulus
+    defaults to the muscle's small-strain modulus 3 mu0 (the softest body in contact).
+    """
+
+    interfaces: str = "paper"
+    overrides: dict[str, float] = field(default_factory=dict)
+    settings: ContactSettings | None = None
+    friction: dict[str, float] = field(default_factory=dict, init=False)
+    item: FrictionalContact | None = field(default=None, init=False)
+    item_list: list = field(default_factory=list, init=False)
+    _split: list = field(default_factory=list, init=False, repr=False)
+
+    def __post_init__(self):
+        from needletissue.errors import InputError, check_number
+
+        if self.interfaces not in ("bonded", "paper"):  # fail before meshing
+            raise InputError("interfaces", f"must be 'bonded' or 'paper', got {self.interfaces!r}")
+        for name, mu in self.overrides.items():
+            check_number(f"interfaces.{name}", mu, ge=0)
+
+    def hooks(self) -> dict:
+        """Keyword arguments for run_needle_model."""
+        return {"mesh_hook": self.prepare, "items": self.items}
+
+    def prepare(self, mesh):
+        self.friction = resolve_interfaces(mesh, self.interfaces, self.overrides)
+        if not self.friction:
+            return mesh
+        mesh, self._split = split_interfaces(mesh, list(self.friction))
+        return mesh
+
+    def items(self, model) -> list:
+        """One contact item per interface: the barrier stiffness follows the softer side's modulus
+        (3 mu0 of the region's material), so needle-bone is not as soft as needle-muscle."""
+        from needletissue import materials
+        from needletissue.fem.needle import MATERIALS
+
+        self.item_list = []
+        for itf in self._split:
+            modulus = min(3.0 * materials.get(MATERIALS.get(r, r)).initial_shear_modulus
+                          for r in itf.regions_a + itf.regions_b)
+            settings = self.settings or ContactSettings()
+            settings = replace(settings, youngs_modulus=modulus) if self.settings is None or self.settings.stiffness is None else settings
+            surface = ContactSurface.build(model.mesh.points, [itf], self.friction, gap=settings.gap)
+            self.item_list.append(FrictionalContact(model.field, surface, settings))
+        self.item = self.item_list[0] if self.item_list else None
+        return list(self.item_list)
+
+
+@dataclass
+class InterfaceComparison:
+    """Bonded vs contact at one force (mm)."""
+
+    force_N: float
+    needle_max_bonded_mm: float
+    needle_max_contact_mm: float
+    tissue_max_bonded_mm: dict[str, float]
+    tissue_max_contact_mm: dict[str, float]
+    max_gap_opening_mm: dict[str, float]  # per interface: largest normal separation of node pairs
+    max_interpenetration_mm: float
+    theory_fe_difference_bonded_mm: float | None
+    theory_fe_difference_contact_mm: float | None
+
+
+@dataclass
+class ComparisonResult:
+    interfaces: dict[str, float]
+    settings: dict
+    rows: list[InterfaceComparison]
+    wall_time_bonded_s: float
+    wall_time_contact_s: float
+
+    @property
+    def cost_ratio(self) -> float:
+        return self.wall_time_contact_s / self.wall_time_bonded_s
+
+
+TISSUE = ("muscle", "adipose", "cortical_bone", "cancellous_bone")
+
+
+def compare_interfaces(config=None, interfaces: str = "paper", overrides=None,
+                       settings: ContactSettings | None = None) -> ComparisonResult:
+    """Run the needle model bonded and with contact on the same mesh (see module docstring)."""
+    from needletissue.fem.needle import NeedleModelConfig, run_needle_model
+
+    cfg = config or NeedleModelConfig()
+    t0 = time.perf_counter()
+    bonded = run_needle_model(cfg)
+    t_bonded = time.perf_counter() - t0
+    contact = NeedleContact(interfaces, dict(overrides or {}), settings)
+    t0 = time.perf_counter()
+    with_contact = run_needle_model(cfg, **contact.hooks())
+    t_contact = time.perf_counter() - t0
+    rows = []
+    for b, c in zip(bonded.results, with_contact.results):
+        gaps, penetration = {}, 0.0
+        for item in contact.item_list:
+            gaps.update(item.gap_opening(c.fe.displacement))
+            state = item.contact_state(item.positions(c.fe.displacement[item.surface.vertices]))
+            penetration = max(penetration, state["max_interpenetration_mm"])
+        rows.append(InterfaceComparison(
+            force_N=b.force_N,
+            needle_max_bonded_mm=b.max_needle_deformation_mm,
+            needle_max_contact_mm=c.max_needle_deformation_mm,
+            tissue_max_bonded_mm={k: v for k, v in b.max_deformation_mm.items() if k in TISSUE},
+            tissue_max_contact_mm={k: v for k, v in c.max_deformation_mm.items() if k in TISSUE},
+            max_gap_opening_mm={k: float(max(0.0, v.max())) for k, v in gaps.items()},
+            max_interpenetration_mm=float(penetration),
+            theory_fe_difference_bonded_mm=b.theory_fe_difference_mm,
+            theory_fe_difference_contact_mm=c.theory_fe_difference_mm,
+        ))
+    settings_dict = {i.surface.interfaces[0].name: {
+        "dhat_mm": i.settings.dhat, "stiffness_MPa_per_mm": i.settings.kappa,
+        "eps_v_mm": i.settings.eps_v, "lag": i.settings.lag} for i in contact.item_list}
+    return ComparisonResult(contact.friction, settings_dict, rows, t_bonded, t_contact)
