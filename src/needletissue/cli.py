@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import sys
 from types import SimpleNamespace
 
@@ -12,12 +10,13 @@ from rich.console import Console
 from rich.markup import escape
 
 from needletissue import __version__
+from needletissue.commands import (
+    fe_needle, fe_pelvis, imaging, materials, reproduce, ritz, study, validate,
+)
 from needletissue.errors import InputError, NeedleTissueError
 
-# One module per concern; each defines register(app, groups).
-_COMMAND_MODULES = (
-    "materials", "ritz", "validate", "fe_needle", "fe_pelvis", "imaging", "reproduce", "study",
-)
+# One module per concern; each defines register(app, groups) and keeps heavy imports inside commands.
+_COMMAND_MODULES = (materials, ritz, validate, fe_needle, fe_pelvis, imaging, reproduce, study)
 
 app = typer.Typer(
     name="needletissue",
@@ -49,10 +48,8 @@ def _root(
     """Needle-tissue interactive deformation toolkit."""
 
 
-for _name in _COMMAND_MODULES:
-    _mod_name = f"needletissue.commands.{_name}"
-    if importlib.util.find_spec(_mod_name) is not None:
-        importlib.import_module(_mod_name).register(app, groups)
+for _module in _COMMAND_MODULES:
+    _module.register(app, groups)
 
 
 def main() -> None:
