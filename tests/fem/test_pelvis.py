@@ -133,6 +133,13 @@ def test_quadratic_needles_have_the_cylinder_volume(coarse):
         straight, curv = vols
         assert straight < 0.9 * exact
         assert abs(curv - exact) < 0.02 * exact
+    # curving never inverts an element anywhere (tissue slivers beside the pin included)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        region = fem.RegionQuadraticTetra(fem.Mesh(curved, q.cells, "tetra10"))
+    assert region.dV.min() > 0
 
 
 def test_gripper_is_the_two_clamp_side_faces(coarse):
@@ -206,3 +213,23 @@ def test_ssm_source_layers_and_hip_joint():
     for p in gp.needle_paths(v, site):
         assert p.total_mm >= 32.0 - 2 * v.spacing
         assert p.adipose_mm >= 10.0 - 2 * v.spacing
+
+
+def test_curving_that_would_invert_an_element_is_undone():
+    """A midside node pushed through the opposite face inverts a tetra10: that move is reverted, a
+    harmless one is kept."""
+    import felupe as fem
+
+    mesh = fem.Cube(n=2).triangulate().add_midpoints_edges()
+    straight = np.array(mesh.points, float)
+    curved = straight.copy()
+    cell = mesh.cells[0]
+    mid = cell[4]  # VTK tetra10: node 4 is the midpoint of edge 0-1
+    far = cell[3]
+    curved[mid] += 1.5 * (straight[far] - straight[mid])  # through the element: negative Jacobian
+    mids = np.unique(mesh.cells[:, 4:])
+    harmless = mids[np.argmax(np.linalg.norm(straight[mids] - straight[mid], axis=1))]
+    curved[harmless] += 1e-3
+    fixed = gp._straighten_inverted(curved.copy(), straight, mesh.cells)
+    assert np.array_equal(fixed[mid], straight[mid]) and not np.array_equal(fixed[harmless], straight[harmless])
+    assert fem.RegionQuadraticTetra(fem.Mesh(fixed, mesh.cells, "tetra10")).dV.min() > 0

@@ -736,4 +736,27 @@ def curve_needles(qpoints: np.ndarray, qcells: np.ndarray, regions: dict, needle
             rn = np.linalg.norm(rv, axis=1)
             pts[mids] += rv * (radius / rn - 1.0)[:, None]
     assert TET10_EDGES.shape == (6, 2)
+    return _straighten_inverted(pts, np.asarray(qpoints, float), qcells)
+
+
+def _straighten_inverted(pts: np.ndarray, straight: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Undo curving where it inverts an element (a thin tissue sliver beside the pin): its Jacobian
+    must stay positive at the corners and the quadrature points, or the element integrates negative volume."""
+    import felupe as fem
+
+    element = fem.QuadraticTetra()
+    r = np.vstack([fem.TetrahedronQuadrature(order=2).points, [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]])
+    dNdr = np.stack([element.gradient(ri) for ri in r])  # (q, 10, 3)
+    moved = np.any(pts != straight, axis=1)
+    for _ in range(10):
+        check = cells[moved[cells].any(axis=1)]
+        if not len(check):
+            break
+        J = np.einsum("cai,qaj->cqij", pts[check], dNdr)
+        bad = check[(np.linalg.det(J) <= 0).any(axis=1)]
+        if not len(bad):
+            break
+        nodes = np.unique(bad)
+        pts[nodes] = straight[nodes]
+        moved[nodes] = False
     return pts
