@@ -34,7 +34,7 @@ def test_force_equilibrium_and_outputs(two_layers, tmp_path):
     assert set(m.cell_data) >= {"von_mises_MPa", "principal_stretches", "region"}
     np.testing.assert_allclose(m.point_data["displacement"], res[-1].displacement)
     payload = write_results(tmp_path / "run", res, {"load_N": 1.0})
-    saved = json.loads((tmp_path / "run" / "results.json").read_text())
+    saved = json.loads((tmp_path / "run" / "results.json").read_text(encoding="utf-8"))
     assert saved == json.loads(json.dumps(payload)) and payload["vtu"] == ["fe_0.vtu", "fe_1.vtu"]
     assert (tmp_path / "run" / "versions.json").exists() and (tmp_path / "run" / "config.toml").exists()
 

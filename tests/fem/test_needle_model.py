@@ -79,7 +79,7 @@ def test_json_contract_and_files(cli_run):
         assert (out / name).stat().st_size > 0, name
     vtu = meshio.read(out / "needle_20N.vtu")
     assert "region" in vtu.cell_data and "displacement" in vtu.point_data
-    assert json.loads((out / "results.json").read_text())["results"][0]["force_N"] == F_SMALL
+    assert json.loads((out / "results.json").read_text(encoding="utf-8"))["results"][0]["force_N"] == F_SMALL
 
 
 def test_two_needles_mirror_symmetric_and_share_the_force(cli_run):

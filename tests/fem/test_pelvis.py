@@ -182,7 +182,7 @@ def test_coarse_solve_equilibrium_and_monotone(tmp_path):
     assert 0 < a.max_needle_deformation_mm < b.max_needle_deformation_mm
     assert b.max_needle_deformation_mm >= max(v for k, v in b.max_deformation_mm.items()
                                               if k in gp.SOFT_TISSUES)
-    data = json.loads((tmp_path / "pelvis_results.json").read_text())
+    data = json.loads((tmp_path / "pelvis_results.json").read_text(encoding="utf-8"))
     assert data["ranking"] and set(data["ranking"]) <= set(gp.SOFT_TISSUES)
     assert (tmp_path / "pelvis_100N.vtu").is_file() and (tmp_path / "config.toml").is_file()
     # equilibrium: reactions of all supports + applied force = 0 (within 1 % of the force)

@@ -62,7 +62,7 @@ def test_cli_json_and_plot(tmp_path):
         assert key in d
     assert d["material"] == "adipose" and len(d["fe_nominal_stress_MPa"]) == len(d["displacement_mm"]) >= 11
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert json.loads((tmp_path / "run" / "results.json").read_text())["rmse_MPa"] == d["rmse_MPa"]
+    assert json.loads((tmp_path / "run" / "results.json").read_text(encoding="utf-8"))["rmse_MPa"] == d["rmse_MPa"]
     # without --out the run files go next to the figure
     res2 = CliRunner().invoke(app, ["validate", "traction", "--material", "muscle", "--elements", "1",
                                     "--plot", str(tmp_path / "fig" / "m.png")])

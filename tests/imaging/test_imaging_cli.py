@@ -25,7 +25,7 @@ def test_segment_mesh_thickness(phantom_ct, tmp_path, monkeypatch, capsys):
     seg_dir, mesh_dir = tmp_path / "seg", tmp_path / "mesh"
     code, out, err = run(monkeypatch, capsys, "segment", phantom_ct, "--out", seg_dir)
     assert code == 0, err
-    tissues = json.loads((seg_dir / "tissues.json").read_text())
+    tissues = json.loads((seg_dir / "tissues.json").read_text(encoding="utf-8"))
     assert {"cortical_bone", "cancellous_bone", "muscle", "adipose"} <= set(tissues)
     for f in ("tissues.nii.gz", "config.toml", "versions.json", "results.json"):
         assert (seg_dir / f).is_file()
@@ -34,7 +34,7 @@ def test_segment_mesh_thickness(phantom_ct, tmp_path, monkeypatch, capsys):
     m = meshio.read(mesh_dir / "mesh.msh")
     assert {"cortical_bone", "muscle", "adipose"} <= set(m.field_data)
     assert (mesh_dir / "surfaces" / "adipose.stl").is_file() and (mesh_dir / "mesh.vtu").is_file()
-    res = json.loads((mesh_dir / "results.json").read_text())
+    res = json.loads((mesh_dir / "results.json").read_text(encoding="utf-8"))
     assert res["quality"]["min_dihedral_deg"] > 0
     assert all(r["watertight"] and r["manifold"] for r in res["surfaces"].values())
     # phantom centre in LPS: origin (100, 50, -20), direction diag(-1, -1, 1), 64 x 64 voxels of 2 mm

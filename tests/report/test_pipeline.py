@@ -43,12 +43,12 @@ def test_complete_run_has_marker_results_and_comparison(tmp_path):
     out = tmp_path / "res"
     res = run_reproduce(load_config(), out, [Stage("s", "S", _writes(18.0), _always)], progress=False)
     assert res.ok and (out / MARKER).exists()
-    data = json.loads((out / "results.json").read_text())
+    data = json.loads((out / "results.json").read_text(encoding="utf-8"))
     row = data["comparison_with_paper"][0]
     assert row["paper"] == PAPER["ritz_tip_deflection_300N_mm"].value
     assert row["difference"] == pytest.approx(18.0 - 17.63)
     assert (out / "config.toml").exists() and (out / "versions.json").exists()
-    html = (out / "report.html").read_text()
+    html = (out / "report.html").read_text(encoding="utf-8")
     assert "17.63" in html and "src=\"http" not in html  # nothing fetched from elsewhere
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".res.")]
 
@@ -63,7 +63,7 @@ def test_interrupted_run_leaves_no_folder_and_keeps_previous(tmp_path):
         run_reproduce(load_config(), out, [Stage("s", "S", _writes(2.0), _always),
                                            Stage("t", "T", _interrupted, _always)], progress=False)
     # the earlier complete result is still there, untouched
-    assert (out / "s" / "data.txt").read_text() == "1.0"
+    assert (out / "s" / "data.txt").read_text(encoding="utf-8") == "1.0"
     assert not (out / "s" / "partial.txt").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".res.")]
 
@@ -73,7 +73,7 @@ def test_failed_stage_is_reported_and_others_run(tmp_path):
     res = run_reproduce(load_config(), out, [Stage("a", "A", _broken, _always),
                                              Stage("s", "S", _writes(3.0), _always)], progress=False)
     assert not res.ok
-    data = json.loads((out / "results.json").read_text())
+    data = json.loads((out / "results.json").read_text(encoding="utf-8"))
     assert data["stages"]["a"]["status"] == "failed" and "solver exploded" in data["stages"]["a"]["reason"]
     assert data["stages"]["s"]["status"] == "ok"
 
@@ -84,7 +84,7 @@ def test_refuses_foreign_folder(tmp_path):
     (out / "thesis.tex").write_text("precious")
     with pytest.raises(InputError, match="--out"):
         run_reproduce(load_config(), out, [], progress=False)
-    assert (out / "thesis.tex").read_text() == "precious"
+    assert (out / "thesis.tex").read_text(encoding="utf-8") == "precious"
 
 
 def test_isolated_stage_that_crashes_fails_alone(tmp_path):
@@ -92,6 +92,6 @@ def test_isolated_stage_that_crashes_fails_alone(tmp_path):
     out = tmp_path / "res"
     res = run_reproduce(load_config(), out, [Stage("crash", "C", _die, _always, isolated=True),
                                              Stage("s", "S", _writes(3.0), _always)], progress=False)
-    data = json.loads((out / "results.json").read_text())
+    data = json.loads((out / "results.json").read_text(encoding="utf-8"))
     assert data["stages"]["crash"]["status"] == "failed" and "died" in data["stages"]["crash"]["reason"]
     assert data["stages"]["s"]["status"] == "ok" and not res.ok

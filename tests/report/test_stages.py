@@ -18,7 +18,7 @@ def test_ritz_and_materials_stages(tmp_path):
     out = tmp_path / "res"
     res = run_reproduce(cfg, out, stage_list(), progress=False)
     assert res.ok
-    data = json.loads((out / "results.json").read_text())
+    data = json.loads((out / "results.json").read_text(encoding="utf-8"))
     assert data["stages"]["traction"]["status"] == "skipped"
     direct = ritz.solve_forces([300.0], ritz_model(cfg), order=cfg.ritz.order)[0]
     row = next(c for c in data["comparison_with_paper"] if c["quantity"] == "Ritz tip deflection at 300 N")
@@ -27,5 +27,5 @@ def test_ritz_and_materials_stages(tmp_path):
     for name in ("materials", "ritz"):
         for fig in data["stages"][name]["figures"]:
             assert (out / fig).stat().st_size > 1000
-    html = (out / "report.html").read_text()
+    html = (out / "report.html").read_text(encoding="utf-8")
     assert html.count("data:image/png;base64,") >= 2

@@ -58,7 +58,7 @@ def test_plot_writes_figure_and_run_files(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     for f in ("config.toml", "versions.json", "results.json"):
         assert (tmp_path / f).is_file()
-    assert len(json.loads((tmp_path / "results.json").read_text())["results"]) == 3
+    assert len(json.loads((tmp_path / "results.json").read_text(encoding="utf-8"))["results"]) == 3
 
 
 def test_calibrate_cli_round_trip():

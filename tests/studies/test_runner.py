@@ -102,7 +102,7 @@ def test_failing_case_is_reported_and_others_finish(tmp_path):
         assert "thickness" in f["error"]
     ok = res.results[res.results.status == "ok"]
     assert np.isfinite(ok["tip_deflection_mm"]).all()
-    data = json.loads((tmp_path / "o" / "results.json").read_text())
+    data = json.loads((tmp_path / "o" / "results.json").read_text(encoding="utf-8"))
     assert data["n_failed"] == 3 and data["failures"][0]["parameters"]["force_N"] in (100.0, 200.0, 300.0)
     assert len(pd.read_csv(tmp_path / "o" / "failures.csv")) == 3
 
@@ -139,7 +139,7 @@ def test_killed_study_resumes_and_computes_every_case_once(tmp_path):
     for name, (mtime, run_id) in before.items():  # finished chunks were not recomputed
         p = chunks / name
         assert p.stat().st_mtime_ns == mtime and pd.read_parquet(p)["run_id"][0] == run_id
-    logged = [json.loads(line)["chunk"] for line in (out / "runs.jsonl").read_text().splitlines() if line.strip()]
+    logged = [json.loads(line)["chunk"] for line in (out / "runs.jsonl").read_text(encoding="utf-8").splitlines() if line.strip()]
     assert len(logged) == len(set(logged))  # no chunk persisted twice
     # and the numbers equal an uninterrupted run
     one_chunk = _write(tmp_path, LHS.format(samples=n, chunk=n), "ref.toml")  # same seed: same cases

@@ -143,7 +143,7 @@ def figures_from_files(out_dir) -> list[str]:
     import meshio
 
     out_dir = Path(out_dir)
-    d = json.loads((out_dir / "pelvis_results.json").read_text())
+    d = json.loads((out_dir / "pelvis_results.json").read_text(encoding="utf-8"))
     last = d["results"][-1]
     m = meshio.read(last["vtu"])
     cells = m.cells[0].data

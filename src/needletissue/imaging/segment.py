@@ -152,7 +152,7 @@ class Segmentation:
             if not p.is_file():
                 raise InputError("DIR", f"{p}: missing (run `needletissue segment` first)")
         try:
-            tissues = {str(k): int(v) for k, v in json.loads(table.read_text()).items()}
+            tissues = {str(k): int(v) for k, v in json.loads(table.read_text(encoding="utf-8")).items()}
         except (ValueError, AttributeError, TypeError) as exc:
             raise InputError("DIR", f"{table}: not a tissue table name -> label id ({exc})") from None
         labels = read_image(img_path, "tissues")

@@ -92,7 +92,7 @@ def read_csv(path: str | Path) -> StressData:
     """
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(str(path), f"cannot read the data file: {exc}") from None
     rows = [(i, r) for i, r in enumerate(csv.reader(text.splitlines()), start=1)

@@ -187,7 +187,7 @@ def load_toml(path: str | Path) -> list[Material]:
     """
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise InputError(str(path), f"cannot read materials TOML: {exc}") from None
     out = []

@@ -108,7 +108,7 @@ DEFAULT_NAME = "default.toml"
 
 
 def default_text() -> str:
-    return resources.files("needletissue.configs").joinpath(DEFAULT_NAME).read_text()
+    return resources.files("needletissue.configs").joinpath(DEFAULT_NAME).read_text(encoding="utf-8")
 
 
 def default_dict() -> dict:
@@ -132,7 +132,7 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
     if path is not None:
         path = Path(path)
         try:
-            user = tomllib.loads(path.read_text())
+            user = tomllib.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise InputError("--config", f"no such file: {path}") from None
         except tomllib.TOMLDecodeError as exc:

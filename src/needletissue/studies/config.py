@@ -146,7 +146,7 @@ def load_study(path: str | Path) -> StudyConfig:
 
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise InputError("--config", f"no such file: {path}") from None
     except tomllib.TOMLDecodeError as exc:

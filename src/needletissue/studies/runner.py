@@ -79,7 +79,7 @@ def _prepare(cfg: StudyConfig, out_dir: Path) -> pd.DataFrame:
     meta_path = out_dir / "study.json"
     fp = fingerprint(cfg)
     if meta_path.exists():
-        old = json.loads(meta_path.read_text()).get("fingerprint")
+        old = json.loads(meta_path.read_text(encoding="utf-8")).get("fingerprint")
         if old != fp:
             raise InputError("--out", f"{out_dir} holds another study (fingerprint {old}, this one {fp}); "
                              "use a new folder or the same config to resume")
@@ -107,7 +107,7 @@ def _persist(out_dir: Path, i: int, df: pd.DataFrame, run_id: str) -> None:
     write_atomic(chunk_path(out_dir, i), _to_parquet_bytes(df))
     line = json.dumps({"run_id": run_id, "chunk": i, "cases": int(len(df)),
                        "failed": int((df["status"] != "ok").sum()), "time": time.time()})
-    with open(out_dir / "runs.jsonl", "a") as f:
+    with open(out_dir / "runs.jsonl", "a", encoding="utf-8") as f:
         f.write(line + "\n")
         f.flush()
         os.fsync(f.fileno())
