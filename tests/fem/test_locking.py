@@ -3,7 +3,6 @@ top. Mixed P2/P0 converges under refinement and does not depend on K; linear tet
 one-point rule makes them identical to P1/P0) are far too stiff. This is why tissue uses
 order=2, formulation="mixed"."""
 
-import numpy as np
 import pytest
 
 from needletissue import materials

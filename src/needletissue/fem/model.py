@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 
 from needletissue import materials as _materials
 from needletissue.errors import InputError

@@ -38,7 +38,6 @@ def _render(res, fe_last, mesh, path):
     grid.cell_data["region"] = tag
     grid = grid.linear_copy()
     axes = np.array(res.site["needle_axes_mm"], float)
-    centre = axes.reshape(-1, 3).mean(axis=0)
     d = np.asarray(res.site["direction"], float)
     f = np.asarray(res.force_vector_unit, float)
     normal = np.cross(d, f)

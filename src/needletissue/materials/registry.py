@@ -5,7 +5,6 @@ Units: stresses and moduli in MPa, density in g/cm^3.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import felupe as fem
 
 from needletissue.errors import InputError, check_number
 from needletissue.materials.laws import mooney_rivlin_5
+from needletissue.runinfo import read_toml
 
 # Isochoric laws: name -> (strain energy, parameter names).
 HYPERELASTIC_MODELS = {
@@ -186,10 +186,7 @@ def load_toml(path: str | Path) -> list[Material]:
     source = "my lab"
     """
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise InputError(str(path), f"cannot read materials TOML: {exc}") from None
+    data = read_toml(path, field="materials TOML")
     out = []
     for name, table in data.items():
         if not isinstance(table, dict) or "model" not in table:

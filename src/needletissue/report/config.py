@@ -15,7 +15,7 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from needletissue.errors import InputError
+from needletissue.runinfo import read_toml
 from needletissue.studies.config import validation_to_input_error
 
 class _Strict(BaseModel):
@@ -130,14 +130,7 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
     """Default config, overridden by the TOML file at ``path`` and then by ``overrides``."""
     data = default_dict()
     if path is not None:
-        path = Path(path)
-        try:
-            user = tomllib.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise InputError("--config", f"no such file: {path}") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise InputError(str(path), f"not valid TOML: {exc}") from None
-        data = deep_merge(data, user)
+        data = deep_merge(data, read_toml(path))
     if overrides:
         data = deep_merge(data, overrides)
     try:

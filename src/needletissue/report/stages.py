@@ -193,7 +193,7 @@ def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
             plot_theory_vs_fe(data["results"], d / "needle_max_deformation_vs_force.png",
                               f"Needle FE model ({c.needles} needle(s)) vs Ritz and the paper", cfg.report.dpi),
             plot_region_deformation(data["results"], d / "needle_fe_region_deformation.png",
-                                    f"Needle FE model: maximum deformation per region", cfg.report.dpi)]
+                                    "Needle FE model: maximum deformation per region", cfg.report.dpi)]
     try_render(files[-1], d / "needle_deformed.png", f"needle FE model, {res.results[-1].force_N:g} N "
                "(true scale), |u| in mm", notes, figs)
     comps = []

@@ -7,13 +7,13 @@ file is read, before any case is computed.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from needletissue.errors import InputError
+from needletissue.runinfo import read_toml
 
 DISTRIBUTIONS = ("uniform", "normal", "truncnorm", "lognormal")
 
@@ -144,14 +144,7 @@ def load_study(path: str | Path) -> StudyConfig:
     """Read and validate a study TOML; the model's parameter names and ranges are checked too."""
     from needletissue.studies.models import get_model
 
-    path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError("--config", f"no such file: {path}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(str(path), f"not valid TOML: {exc}") from None
-    cfg = parse_study(data)
+    cfg = parse_study(read_toml(path))
     get_model(cfg.study.model).check_config(cfg)
     return cfg
 
