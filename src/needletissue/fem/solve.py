@@ -140,10 +140,9 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     predictor    : start each increment from the linear extrapolation of the last converged one
                    (fewer Newton iterations on smooth load paths; off after a cut-back).
     linesearch   : backtracking line search in every Newton iteration (FElupe's LinesearchPlugin:
-                   halve the step while det F <= 0, the residual is non-finite, e.g. a contact
-                   item's NaN for a step that passes a surface through another, or its norm does not
-                   decrease). Default: on when extra `items` are given, off otherwise (bonded runs
-                   stay plain Newton).
+                   halve the step while det F <= 0 or the residual is non-finite, e.g. a contact
+                   item's NaN for a step that passes a surface through another). Default: on when
+                   extra `items` are given, off otherwise (bonded runs stay plain Newton).
 
     Reactions: a dof fixed by several conditions (e.g. on two fixed surfaces that share an edge)
     counts once, for the first condition in `bcs` that constrains it, so the reactions of all
@@ -181,7 +180,10 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
 
     plugins = [_Report()]
     if items if linesearch is None else linesearch:
-        plugins.insert(0, fem.LinesearchPlugin(admissible=True, residual=True, max_halvings=8))
+        # no Armijo test on |r|: a barrier's residual is no merit function (measured: it stalled the
+        # needle model at load factor 0.005); reject only inverted and non-finite trials
+        plugins.insert(0, fem.LinesearchPlugin(admissible=True, residual=False, max_halvings=10,
+                                               criteria=[lambda trial: trial.finite]))
     lam, nsteps, nit, ncut = 0.0, 0, 0, 0
     last_du, last_dl = None, 0.0  # last converged increment, for the predictor
     newton_s = 0.0
