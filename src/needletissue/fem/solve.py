@@ -121,7 +121,7 @@ class _Progress:
 
 def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=(), progress: bool = True,
           initial_step: float | None = None, min_step: float = 1e-3, max_step: float | None = None,
-          tol: float = 1e-8, maxiter: int = 12, results: bool = True, predictor: bool = True,
+          tol: float = 1e-8, maxiter: int | None = None, results: bool = True, predictor: bool = True,
           linesearch: bool | None = None) -> list[FEResult]:
     """Solve the model quasi-statically, one FEResult per requested load factor.
 
@@ -135,7 +135,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     min_step     : smallest increment after cut-backs (halving); below it ConvergenceError names the
                    load factor reached. max_step caps the increment (default: no cap).
     tol          : Newton tolerance on |residual of free dofs| / |reactions| (FElupe's norm).
-    maxiter      : Newton iterations per increment before a cut-back.
+    maxiter      : Newton iterations per increment before a cut-back (default 12; 25 with extra
+                   `items`, whose line-searched iterations converge more slowly near contact changes).
     results      : False skips the stress/stretch evaluation (e.g. in benchmarks).
     predictor    : start each increment from the linear extrapolation of the last converged one
                    (fewer Newton iterations on smooth load paths; off after a cut-back).
@@ -159,7 +160,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     step = lams[0] if initial_step is None else check_number("initial_step", initial_step, gt=0)
     max_step = np.inf if max_step is None else check_number("max_step", max_step, gt=0)
     step = min(step, max_step)
-    maxiter = int(check_number("maxiter", maxiter, ge=1))
+    maxiter = int(check_number("maxiter", (25 if items else 12) if maxiter is None else maxiter, ge=1))
 
     t0 = time.perf_counter()
     loads = _Loads(model, bcs)
