@@ -68,3 +68,16 @@ def test_progress_bar_goes_to_stderr(two_layers, capsys):
     out = capsys.readouterr()
     assert out.out == ""
     assert "Newton" in out.err and "|r|" in out.err
+
+
+def test_reactions_of_supports_sharing_nodes_sum_to_minus_the_load(two_layers):
+    """zmin and xmin share an edge of nodes: each constrained dof's reaction counts once (for the
+    first condition fixing it), so the supports together balance the applied force (equilibrium)."""
+    F = np.array([0.05, 0.02, 0.1])
+    for bcs in ([Fixed("zmin"), Fixed("xmin")], [Fixed("xmin"), Fixed("zmin", components=(2,))]):
+        model = FEModel(two_layers, {"muscle": "muscle", "adipose": "adipose"})
+        r = solve(model, [*bcs, SurfaceForce("zmax", tuple(F))], [1.0], progress=False)[-1]
+        total = r.reaction_forces["zmin"] + r.reaction_forces["xmin"]
+        np.testing.assert_allclose(total, -F, atol=1e-6 * np.abs(F).max())
+        assert np.abs(r.reaction_forces["zmin"]).max() > 0.1 * np.abs(F).max()  # both supports carry load
+        assert np.abs(r.reaction_forces["xmin"]).max() > 0.1 * np.abs(F).max()

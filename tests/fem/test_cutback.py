@@ -37,3 +37,13 @@ def test_impossible_load_raises_naming_load_factor(block):
     assert 0.5 <= reached < 10 / 12
     # the model is left at the last converged state, not an unconverged one
     assert np.abs(model.field[0].values[:, 2]).max() <= 12 * reached + 1e-9
+
+
+def test_line_search_reaches_the_same_state(block):
+    """The line search only shortens Newton steps: the converged state is the fixed-stepping one."""
+    bcs = [Fixed("zmin"), PrescribedDisplacement("zmax", (0, 0, 12.0))]
+    ls = solve(FEModel(block, {"adipose": "adipose"}), bcs, [1.0], progress=False, maxiter=30, linesearch=True)[-1]
+    easy = solve(FEModel(block, {"adipose": "adipose"}), bcs, [1.0], progress=False, initial_step=0.02,
+                 max_step=0.02, maxiter=30)[-1]
+    np.testing.assert_allclose(ls.displacement, easy.displacement, atol=1e-7)
+    np.testing.assert_allclose(ls.reaction_forces["zmax"], easy.reaction_forces["zmax"], rtol=1e-7)

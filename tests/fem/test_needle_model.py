@@ -104,7 +104,7 @@ def test_small_load_response_is_linear(cli_run):
 
 def test_equilibrium_of_supports(one_needle):
     """With free tissue far faces the bone far faces hold the whole applied force: reaction = -F.
-    (With both supports fixed they share nodes on the bone-tissue edge, counted in both sums.)"""
+    (With both supports fixed, shared edge nodes count once: see test_api's shared-support test.)"""
     r = one_needle.results[0]
     np.testing.assert_allclose(r.fe.reaction_forces["bone_fixed"], [0, -F_SMALL, 0], atol=1e-6 * F_SMALL)
 
