@@ -12,7 +12,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 
-import numpy as np
 
 from needletissue.fem.contact import ContactSettings, ContactSurface, FrictionalContact, resolve_interfaces
 from needletissue.fem.contact_mesh import split_interfaces
