@@ -14,7 +14,6 @@ not known more finely than the tissue elements); needles and clamp are exact OCC
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -53,10 +52,12 @@ BODY_WALL_MM = 25.0  # unlabelled soft tissue this close to the skin is body wal
 
 def data_dir() -> Path:
     """`$NEEDLETISSUE_DATA` or <repo root>/../shared/data; InputError when absent."""
-    env = os.environ.get("NEEDLETISSUE_DATA")
-    path = Path(env) if env else Path(__file__).resolve().parents[3] / ".." / "shared" / "data"
-    if not path.is_dir():
-        raise InputError("data", f"data folder not found at {path}: set NEEDLETISSUE_DATA or provide ../shared/data")
+    from needletissue.imaging.data import shared_data_dir
+
+    path = shared_data_dir()
+    if path is None or not path.is_dir():
+        raise InputError("data", f"data folder not found at {path or '<repo>/../shared/data'}: "
+                         "set NEEDLETISSUE_DATA or provide ../shared/data")
     return path.resolve()
 
 

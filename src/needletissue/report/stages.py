@@ -6,10 +6,8 @@ Stages call the public functions of the engine packages; nothing here computes p
 
 from __future__ import annotations
 
-import os
 import warnings
 from dataclasses import dataclass
-from pathlib import Path
 
 from needletissue.report.config import ReproduceConfig
 from needletissue.report.paper import PAPER_RANKING, fe_key
@@ -213,20 +211,16 @@ def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
 # --- anatomical pelvis model (needs ../shared/data, $NEEDLETISSUE_DATA or --ct) --------------------
 
 
-def shared_data_dir() -> Path | None:
-    """$NEEDLETISSUE_DATA, else <repo root>/../shared/data, when it exists."""
-    env = os.environ.get("NEEDLETISSUE_DATA")
-    cand = Path(env) if env else Path(__file__).resolve().parents[3].parent / "shared" / "data"
-    return cand if cand.is_dir() else None
-
-
 def _pelvis_enabled(cfg: ReproduceConfig, ctx: StageContext):
     mode = cfg.pelvis.enabled
     if mode == "off":
         return False, "disabled in config ([pelvis] enabled = \"off\")"
     if mode == "on" or ctx.ct is not None or cfg.pelvis.ct or cfg.pelvis.source == "ssm":
         return True, ""
-    if shared_data_dir() is None:
+    from needletissue.imaging.data import shared_data_dir
+
+    shared = shared_data_dir()
+    if shared is None or not shared.is_dir():
         return False, "no ../shared/data (or $NEEDLETISSUE_DATA) and no --ct: anatomical model skipped"
     return True, ""
 
