@@ -221,4 +221,20 @@ def test_needle_contact_rejects_bad_options_before_meshing():
         NeedleContact("glued")
     with pytest.raises(InputError, match="needle-muscle"):
         NeedleContact("paper", {"needle-muscle": -0.3})
-    assert set(NeedleContact("paper").hooks()) == {"mesh_hook", "items"}
+    assert set(NeedleContact("paper").hooks()) == {"mesh_hook", "items", "report"}
+
+
+@pytest.mark.parametrize("option, value, named", [
+    ("--contact-dhat", "0", "--contact-dhat"), ("--contact-eps-v", "-1", "--contact-eps-v"),
+    ("--friction", "needle-muscle=-0.3", "--friction needle-muscle"), ("--friction", "lung-needle=0.3", "'lung-needle'")])
+def test_bad_contact_cli_options_are_one_line_exit_2(option, value, named):
+    """Checked before the solve (the last one, a pair absent from the mesh, after meshing: ~10 s)."""
+    import subprocess
+    import sys
+
+    args = ["fe", "needle", "--needles", "1", "--needle-mesh-size", "4", "--mesh-size", "12",
+            "--far-mesh-size", "12", "--interfaces", "paper", option, value]
+    p = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", *args],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2, p.stderr
+    assert named in p.stderr and "Traceback" not in p.stderr

@@ -45,6 +45,11 @@ def register(app: typer.Typer, groups) -> None:
         friction: Optional[List[str]] = typer.Option(None, "--friction", help="Per-pair friction "
                                                      "coefficient (>= 0, dimensionless), e.g. "
                                                      "needle-muscle=0.3; repeat; makes that pair a contact."),
+        contact_dhat: float = typer.Option(0.05, "--contact-dhat", help="Contact barrier distance, mm (> 0): "
+                                           "largest interpenetration; smaller is stiffer and harder to "
+                                           "converge (docs/contact.md)."),
+        contact_eps_v: float = typer.Option(0.001, "--contact-eps-v", help="Friction smoothing, mm of slip "
+                                            "per load increment (> 0) below which an interface sticks."),
     ):
         """Solve the needle-tissue-bone model at each force; report needle, clamp and tissue deformation
         and the Rayleigh-Ritz comparison. Units: mm, N, MPa."""
@@ -64,10 +69,14 @@ def register(app: typer.Typer, groups) -> None:
                                 order=order, ritz=not no_ritz, progress=not json_out)
         hooks = {}
         if interfaces != "bonded" or friction:
-            from needletissue.fem.contact import parse_friction
+            from needletissue.fem.contact import ContactSettings, parse_friction
             from needletissue.fem.contact_needle import NeedleContact
 
-            hooks = NeedleContact(interfaces, parse_friction(friction or [])).hooks()
+            from needletissue.errors import check_number
+
+            settings = ContactSettings(dhat=check_number("--contact-dhat", contact_dhat, gt=0),
+                                       eps_v=check_number("--contact-eps-v", contact_eps_v, gt=0))
+            hooks = NeedleContact(interfaces, parse_friction(friction or []), settings).hooks()
         result = run_needle_model(cfg, out, **hooks)
         if json_out:
             from needletissue.runinfo import to_jsonable
@@ -93,5 +102,9 @@ def _table(result, out) -> None:
                   f(r.ritz_tip_deflection_mm), f(r.theory_fe_difference_mm))
     c = Console()
     c.print(t)
+    for row in result.extra.get("contact", {}).get("per_force", []):
+        gaps = ", ".join(f"{k} {v:.3f}" for k, v in row["max_gap_opening_mm"].items())
+        c.print(f"{row['force_N']:g} N contact: largest gap opening mm: {gaps}; "
+                f"interpenetration {row['max_interpenetration_mm']:.4f} mm")
     if out is not None:
         c.print(f"wrote {out}/results.json, VTU and figures")

@@ -56,7 +56,7 @@ class ContactSettings:
       body held only by contact is not singular at the first iteration).
     """
 
-    dhat: float = 1e-2
+    dhat: float = 5e-2
     stiffness: float | None = None
     youngs_modulus: float = 1.0
     eps_v: float = 1e-3
@@ -289,6 +289,10 @@ class FrictionalContact:
         if u is None:
             u = self._u()
         return np.asfortranarray(self.rest + u)
+
+    def admissible(self) -> bool:
+        """False if the surfaces passed through each other since the last converged state (CCD)."""
+        return bool(self._evaluate()["admissible"])
 
     def checkpoint(self):
         return {"statevars": self.results.statevars.copy(), "lagged": self._lagged}

@@ -45,7 +45,33 @@ class NeedleContact:
 
     def hooks(self) -> dict:
         """Keyword arguments for run_needle_model."""
-        return {"mesh_hook": self.prepare, "items": self.items}
+        return {"mesh_hook": self.prepare, "items": self.items, "report": self.report}
+
+    def gaps(self, displacement) -> tuple[dict[str, float], float]:
+        """Largest normal opening per interface (mm, > 0 = separated, e.g. behind the needle) and the
+        largest interpenetration (mm) over all interfaces for a displacement field."""
+        gaps, penetration = {}, 0.0
+        for item in self.item_list:
+            gaps.update({k: float(max(0.0, v.max())) for k, v in item.gap_opening(displacement).items()})
+            state = item.contact_state(item.positions(displacement[item.surface.vertices]))
+            penetration = max(penetration, state["max_interpenetration_mm"])
+        return gaps, float(penetration)
+
+    def settings_dict(self) -> dict:
+        return {i.surface.interfaces[0].name: {
+            "dhat_mm": i.settings.dhat, "stiffness_MPa_per_mm": i.settings.kappa,
+            "eps_v_mm": i.settings.eps_v, "lag": i.settings.lag} for i in self.item_list}
+
+    def report(self, result) -> dict:
+        """The "contact" fields of the needle model's results: interfaces, settings and per force the
+        gap opening per interface and the interpenetration (mm)."""
+        per_force = []
+        for r in result.results:
+            gaps, penetration = self.gaps(r.fe.displacement)
+            per_force.append({"force_N": r.force_N, "max_gap_opening_mm": gaps,
+                              "max_interpenetration_mm": penetration})
+        return {"contact": {"interfaces": dict(self.friction), "settings": self.settings_dict(),
+                            "per_force": per_force}}
 
     def prepare(self, mesh):
         self.friction = resolve_interfaces(mesh, self.interfaces, self.overrides)
@@ -118,23 +144,16 @@ def compare_interfaces(config=None, interfaces: str = "paper", overrides=None,
     t_contact = time.perf_counter() - t0
     rows = []
     for b, c in zip(bonded.results, with_contact.results):
-        gaps, penetration = {}, 0.0
-        for item in contact.item_list:
-            gaps.update(item.gap_opening(c.fe.displacement))
-            state = item.contact_state(item.positions(c.fe.displacement[item.surface.vertices]))
-            penetration = max(penetration, state["max_interpenetration_mm"])
+        gaps, penetration = contact.gaps(c.fe.displacement)
         rows.append(InterfaceComparison(
             force_N=b.force_N,
             needle_max_bonded_mm=b.max_needle_deformation_mm,
             needle_max_contact_mm=c.max_needle_deformation_mm,
             tissue_max_bonded_mm={k: v for k, v in b.max_deformation_mm.items() if k in TISSUE},
             tissue_max_contact_mm={k: v for k, v in c.max_deformation_mm.items() if k in TISSUE},
-            max_gap_opening_mm={k: float(max(0.0, v.max())) for k, v in gaps.items()},
-            max_interpenetration_mm=float(penetration),
+            max_gap_opening_mm=gaps,
+            max_interpenetration_mm=penetration,
             theory_fe_difference_bonded_mm=b.theory_fe_difference_mm,
             theory_fe_difference_contact_mm=c.theory_fe_difference_mm,
         ))
-    settings_dict = {i.surface.interfaces[0].name: {
-        "dhat_mm": i.settings.dhat, "stiffness_MPa_per_mm": i.settings.kappa,
-        "eps_v_mm": i.settings.eps_v, "lag": i.settings.lag} for i in contact.item_list}
-    return ComparisonResult(contact.friction, settings_dict, rows, t_bonded, t_contact)
+    return ComparisonResult(contact.friction, contact.settings_dict(), rows, t_bonded, t_contact)

@@ -116,6 +116,7 @@ class NeedleModelResult:
     results: list[NeedleLoadResult]
     timing_s: dict = field(default_factory=dict)
     files: dict[str, str] = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)     # e.g. "contact": interfaces, settings, gap per force
 
     def to_dict(self) -> dict:
         return {
@@ -124,17 +125,20 @@ class NeedleModelResult:
             "timing_s": self.timing_s,
             "results": [r.to_dict() for r in self.results],
             "files": self.files,
+            **self.extra,
         }
 
 
 def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Path | None = None, *,
-                     mesh_path: str | Path | None = None, items=(), mesh_hook=None) -> NeedleModelResult:
+                     mesh_path: str | Path | None = None, items=(), mesh_hook=None,
+                     report=None) -> NeedleModelResult:
     """Mesh, solve every force of `config.forces` on one load path, post-process; with `out_dir`
     write the mesh, one VTU per force, results.json, config.toml, versions.json and the figures.
 
     Hooks for the frictional-contact model: `mesh_hook(TaggedMesh) -> TaggedMesh` runs on the mesh
     before the FE model is built (e.g. to split the interface surfaces); `items` is a sequence of
-    extra FElupe items or a callable `items(FEModel) -> sequence` (built once the model exists).
+    extra FElupe items or a callable `items(FEModel) -> sequence` (built once the model exists);
+    `report(NeedleModelResult) -> dict` adds fields to the results (and results.json).
     """
     import tempfile
 
@@ -194,6 +198,8 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
                     "min_quality_sicn": info.min_quality, "min_quality_mean_ratio": stats.get("min_quality")}
     out = NeedleModelResult(cfg, mesh_summary, time.perf_counter() - t0, results,
                             timing_s={"mesh": t_mesh, "solve": t_solve})
+    if report is not None:
+        out.extra.update(report(out))
     if out_dir is not None:
         write_outputs(out, Path(out_dir))
     return out

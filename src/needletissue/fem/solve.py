@@ -131,7 +131,9 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                    100/200/300 N of a 300 N force.
     solver       : "auto" (by free dofs), "pardiso", "scipy" or "amg" (PyAMG-preconditioned CG).
     items        : extra FElupe items (e.g. a contact item) assembled with the bodies.
-    initial_step : first increment of the load factor (default: the first requested factor).
+    initial_step : first increment of the load factor (default: the first requested factor; with
+                   extra `items` 1/20 of it: a frictional contact item's friction lags one increment,
+                   so the first increment is frictionless and should carry little load).
     min_step     : smallest increment after cut-backs (halving); below it ConvergenceError names the
                    load factor reached. max_step caps the increment (default: no cap).
     tol          : Newton tolerance on |residual of free dofs| / |reactions| (FElupe's norm).
@@ -157,7 +159,9 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     if not lams or any(b <= a for a, b in zip(lams, lams[1:])):
         raise InputError("load_factors", f"must be a non-empty strictly increasing list of numbers > 0, got {lams}")
     check_number("min_step", min_step, gt=0)
-    step = lams[0] if initial_step is None else check_number("initial_step", initial_step, gt=0)
+    if initial_step is None:  # contact: the first increment has no friction yet (lagged), keep it small
+        initial_step = lams[0] / 20 if items else lams[0]
+    step = check_number("initial_step", initial_step, gt=0)
     max_step = np.inf if max_step is None else check_number("max_step", max_step, gt=0)
     step = min(step, max_step)
     maxiter = int(check_number("maxiter", (25 if items else 12) if maxiter is None else maxiter, ge=1))
@@ -200,6 +204,9 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 if predictor and last_du is not None:
                     for f, d in zip(field.fields, last_du):
                         f.values = f.values + (dl / last_dl) * d
+                    if not all(i.admissible() for i in items if hasattr(i, "admissible")):
+                        for f, v in zip(field.fields, saved):  # e.g. contact surfaces passed through
+                            f.values = v.copy()
                 stateful = [*bodies, *items]  # e.g. a frictional contact item's history
                 checkpoints = [b.checkpoint() if hasattr(b, "checkpoint") else None for b in stateful]
                 ext0 = loads.apply(model, lam + dl)
