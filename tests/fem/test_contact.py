@@ -238,3 +238,20 @@ def test_bad_contact_cli_options_are_one_line_exit_2(option, value, named):
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 2, p.stderr
     assert named in p.stderr and "Traceback" not in p.stderr
+
+
+def test_material_groups_name_anatomical_regions():
+    from needletissue.fem.contact_mesh import group_regions, material_groups
+
+    mats = {"gluteus_medius": "muscle", "iliopsoas": "muscle", "hip_cortical": "cortical_bone",
+            "hip_cancellous": "cancellous_bone", "needle_1": "needle", "adipose": "adipose"}
+    groups = material_groups(mats)
+    assert set(groups["muscle"]) == {"gluteus_medius", "iliopsoas"}
+    assert set(groups["bone"]) == {"hip_cortical", "hip_cancellous"}
+    assert groups["cortical_bone"] == ("hip_cortical",)
+    box = stacked_boxes({"hip_cortical": ((0, 0, -5), (10, 10, 0)), "iliopsoas": ((0, 0, 0), (10, 10, 10))}, 5.0)
+    assert group_regions(box, "bone") == ()  # by name: no region called bone
+    assert group_regions(box, "bone", groups) == ("hip_cortical",)
+    assert resolve_interfaces(box, "paper", groups=groups) == {"muscle-bone": 0.3}
+    split, (itf,) = split_interfaces(box, ["muscle-bone"], groups)
+    assert itf.regions_a == ("iliopsoas",) and itf.regions_b == ("hip_cortical",)

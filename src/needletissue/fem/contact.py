@@ -124,12 +124,14 @@ def _collisions():
     return c
 
 
-def resolve_interfaces(mesh, mode: str = "paper", overrides: dict[str, float] | None = None) -> dict[str, float]:
+def resolve_interfaces(mesh, mode: str = "paper", overrides: dict[str, float] | None = None,
+                       groups: dict[str, tuple[str, ...]] | None = None) -> dict[str, float]:
     """Interfaces to model as frictional contact -> friction coefficient.
 
     mode "bonded": none (unless overridden); "paper": those of PAPER_INTERFACES present in the mesh
     (groups with regions that share faces). overrides {"needle-muscle": 0.3, ...} add or change a pair;
-    a pair not present in the mesh or a coefficient < 0 raises InputError.
+    a pair not present in the mesh or a coefficient < 0 raises InputError. ``groups``: group -> regions
+    (``contact_mesh.material_groups``) for meshes with anatomical region names.
     """
     from needletissue.fem.contact_mesh import group_regions, interface_faces, parse_interface_name
 
@@ -138,7 +140,7 @@ def resolve_interfaces(mesh, mode: str = "paper", overrides: dict[str, float] | 
 
     def present(name):
         ga, gb = parse_interface_name(name)
-        ra, rb = group_regions(mesh, ga), group_regions(mesh, gb)
+        ra, rb = group_regions(mesh, ga, groups), group_regions(mesh, gb, groups)
         return bool(ra) and bool(rb) and len(interface_faces(mesh, ra, rb)[0]) > 0
 
     def canonical(name):

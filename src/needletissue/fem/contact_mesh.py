@@ -45,13 +45,30 @@ class SplitInterface:
     nodes_b: np.ndarray
 
 
-def group_regions(mesh, group: str) -> tuple[str, ...]:
-    """Regions of ``mesh`` that belong to a region group name (see module docstring)."""
+def group_regions(mesh, group: str, groups: dict[str, tuple[str, ...]] | None = None) -> tuple[str, ...]:
+    """Regions of ``mesh`` that belong to a region group name (see module docstring); ``groups``
+    (group -> regions, e.g. from ``material_groups``) takes precedence over the name rule."""
+    if groups and group in groups:
+        return tuple(r for r in mesh.regions if r in groups[group])
     return tuple(
         r
         for r in mesh.regions
         if r == group or r.startswith(group + "_") or r.endswith("_" + group)
     )
+
+
+def material_groups(materials: dict[str, str]) -> dict[str, tuple[str, ...]]:
+    """Region groups by material, for meshes whose region names are anatomical: region -> material
+    name (e.g. ``{"gluteus_medius": "muscle", "hip_cortical": "cortical_bone"}``) gives
+    ``{"muscle": ("gluteus_medius",), "bone": ("hip_cortical",), ...}`` (a material ``x_bone`` is in
+    group ``bone``)."""
+    out: dict[str, list[str]] = {}
+    for region, material in materials.items():
+        family = material.rsplit("_", 1)[-1]
+        out.setdefault(family, []).append(region)
+        if family != material:
+            out.setdefault(material, []).append(region)
+    return {k: tuple(v) for k, v in out.items()}
 
 
 def parse_interface_name(name: str) -> tuple[str, str]:
@@ -107,7 +124,7 @@ def interface_faces(mesh, regions_a, regions_b):
     return fa[ia], fb[ib]
 
 
-def split_interfaces(mesh, names) -> tuple[object, list[SplitInterface]]:
+def split_interfaces(mesh, names, groups: dict[str, tuple[str, ...]] | None = None) -> tuple[object, list[SplitInterface]]:
     """Duplicate the nodes of each named interface on its side b (the second group).
 
     Returns a new mesh of the same dataclass type (points appended, side-b cells and side-b faces of
@@ -124,7 +141,7 @@ def split_interfaces(mesh, names) -> tuple[object, list[SplitInterface]]:
         if name in seen:
             raise InputError("interfaces", f"interface {name!r} given twice")
         seen.add(name)
-        ra, rb = group_regions(mesh, ga), group_regions(mesh, gb)
+        ra, rb = group_regions(mesh, ga, groups), group_regions(mesh, gb, groups)
         for g, r in ((ga, ra), (gb, rb)):
             if not r:
                 raise InputError(

@@ -30,6 +30,7 @@ class NeedleContact:
     interfaces: str = "paper"
     overrides: dict[str, float] = field(default_factory=dict)
     settings: ContactSettings | None = None
+    materials: dict[str, str] | None = None  # region -> material; None: the needle model's regions
     friction: dict[str, float] = field(default_factory=dict, init=False)
     item: FrictionalContact | None = field(default=None, init=False)
     item_list: list = field(default_factory=list, init=False)
@@ -73,22 +74,30 @@ class NeedleContact:
         return {"contact": {"interfaces": dict(self.friction), "settings": self.settings_dict(),
                             "per_force": per_force}}
 
+    def _materials(self) -> dict[str, str]:
+        from needletissue.fem.needle import MATERIALS
+
+        return MATERIALS if self.materials is None else self.materials
+
     def prepare(self, mesh):
-        self.friction = resolve_interfaces(mesh, self.interfaces, self.overrides)
+        from needletissue.fem.contact_mesh import material_groups
+
+        groups = material_groups(self._materials()) if self.materials is not None else None
+        self.friction = resolve_interfaces(mesh, self.interfaces, self.overrides, groups)
         if not self.friction:
             return mesh
-        mesh, self._split = split_interfaces(mesh, list(self.friction))
+        mesh, self._split = split_interfaces(mesh, list(self.friction), groups)
         return mesh
 
     def items(self, model) -> list:
         """One contact item per interface: the barrier stiffness follows the softer side's modulus
         (3 mu0 of the region's material), so needle-bone is not as soft as needle-muscle."""
         from needletissue import materials
-        from needletissue.fem.needle import MATERIALS
 
+        names = self._materials()
         self.item_list = []
         for itf in self._split:
-            modulus = min(3.0 * materials.get(MATERIALS.get(r, r)).initial_shear_modulus
+            modulus = min(3.0 * materials.get(names.get(r, r)).initial_shear_modulus
                           for r in itf.regions_a + itf.regions_b)
             settings = self.settings or ContactSettings()
             settings = replace(settings, youngs_modulus=modulus) if self.settings is None or self.settings.stiffness is None else settings
