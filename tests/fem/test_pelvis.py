@@ -168,6 +168,12 @@ def test_bad_inputs_name_the_field():
         PelvisConfig(si_joint="glued")
     with pytest.raises(InputError, match="needle.direction"):
         gp.NeedleSite(entries=[[0, 0, 0], [20, 0, 0]], direction=[0, 0, 0])
+    with pytest.raises(InputError, match="interfaces"):
+        PelvisConfig(interfaces="glued")
+    with pytest.raises(InputError, match="friction needle-muscle"):
+        PelvisConfig(friction={"needle-muscle": -0.3})
+    with pytest.raises(InputError, match="contact_dhat"):
+        PelvisConfig(contact_dhat=0.0)
 
 
 def test_coarse_solve_equilibrium_and_monotone(tmp_path):

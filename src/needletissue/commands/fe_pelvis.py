@@ -23,6 +23,15 @@ def register(app, groups) -> None:
         si_joint: str = typer.Option("fixed", "--si-joint", help="Sacroiliac joint: fixed (paper) or bonded."),
         out: Path = typer.Option(None, "--out", help="Folder for VTU, figures, config, versions and results."),
         json_out: bool = typer.Option(False, "--json", help="Print the results as JSON."),
+        interfaces: str = typer.Option("bonded", "--interfaces", help="bonded (one conforming mesh) or paper "
+                                       "(frictional contact: needle-muscle 0.3, muscle-bone 0.3, bone-needle "
+                                       "0.9; docs/contact.md)."),
+        friction: list[str] = typer.Option(None, "--friction", help="Per-pair friction coefficient (>= 0), "
+                                           "e.g. needle-muscle=0.3; repeat; makes that pair a contact."),
+        contact_dhat: float = typer.Option(0.05, "--contact-dhat", help="Contact barrier distance, mm (> 0)."),
+        contact_eps_v: float = typer.Option(0.001, "--contact-eps-v",
+                                            help="Friction smoothing: slip per load increment below which an "
+                                                 "interface sticks, mm (> 0)."),
     ):
         """Hemipelvis from CT (or SSM) with two needles and a clamp; max needle and tissue deformation,
         ranking, thickness along the needles and the Ritz comparison. Units mm, N."""
@@ -41,17 +50,21 @@ def register(app, groups) -> None:
             raise InputError("--force-direction", f"expected x,y,z numbers, got {force_direction!r}") from None
         if len(fdir) != 3:
             raise InputError("--force-direction", f"expected three numbers x,y,z, got {force_direction!r}")
+        from needletissue.fem.contact import parse_friction
+
         config = PelvisConfig(
             source="ssm" if ssm else "ct", ct=str(ct) if ct else None, labels=str(labels) if labels else None,
             side=side, site=site, forces=list(force) if force else [100.0, 200.0, 300.0], force_direction=fdir,
             mesh_size=mesh_size, needle_diameter=needle_diameter, si_joint=si_joint,
             out=str(out) if out else None, progress=not json_out,
+            interfaces=interfaces, friction=parse_friction(friction or []), contact_dhat=contact_dhat,
+            contact_eps_v=contact_eps_v,
         )
         res = run_pelvis_model(config)
         d = res.to_dict()
         if json_out:
-            keep = ("mesh", "wall_time_s", "results", "ranking", "thickness", "comparison")
-            print(json.dumps({k: d[k] for k in keep}, indent=2))
+            keep = ("mesh", "wall_time_s", "results", "ranking", "thickness", "comparison", "contact")
+            print(json.dumps({k: d[k] for k in keep if d.get(k) is not None}, indent=2))
             return
         from rich.console import Console
         from rich.table import Table

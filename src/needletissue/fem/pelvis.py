@@ -72,6 +72,11 @@ class PelvisConfig:
     far_size        element size far (refine_radius) from the needles, mm (default 4*mesh_size)
     order           2 (tetra10; needles need it in bending) or 1
     si_joint        "fixed" (paper) or "bonded"
+    interfaces      "bonded" (one conforming mesh) or "paper" (frictional contact: needle-muscle 0.3,
+                    muscle-bone 0.3, bone-needle 0.9; docs/contact.md)
+    friction        {"needle-muscle": 0.3, ...} per-pair friction coefficients (>= 0); each becomes a contact
+    contact_dhat    contact barrier distance = largest interpenetration, mm
+    contact_eps_v   friction smoothing: slip per load increment below which an interface sticks, mm
     """
 
     source: str = "ct"
@@ -96,6 +101,10 @@ class PelvisConfig:
     order: int = 2
     formulation: str = "displacement"
     si_joint: str = "fixed"
+    interfaces: str = "bonded"
+    friction: dict = field(default_factory=dict)
+    contact_dhat: float = 0.05
+    contact_eps_v: float = 0.001
     solver: str = "auto"
     out: str | None = None
     figures: bool = True
@@ -107,6 +116,12 @@ class PelvisConfig:
             raise InputError("source", f"must be 'ct' or 'ssm', got {self.source!r}")
         if self.si_joint not in ("fixed", "bonded"):
             raise InputError("si_joint", f"must be 'fixed' or 'bonded', got {self.si_joint!r}")
+        if self.interfaces not in ("bonded", "paper"):
+            raise InputError("interfaces", f"must be 'bonded' or 'paper', got {self.interfaces!r}")
+        for name, mu in self.friction.items():
+            check_number(f"friction {name}", mu, ge=0)
+        check_number("contact_dhat", self.contact_dhat, gt=0)
+        check_number("contact_eps_v", self.contact_eps_v, gt=0)
         if not self.forces:
             raise InputError("force", "give at least one force (N), e.g. --force 100 --force 200 --force 300")
         self.forces = sorted(check_number("force", f, gt=0, le=5000) for f in self.forces)
@@ -150,6 +165,7 @@ class PelvisResult:
     ritz: dict
     thickness_img: list = field(default_factory=list)
     figures: dict = field(default_factory=dict)
+    contact: dict | None = None  # interfaces, settings, per force the gap opening (mm)
 
     def to_dict(self) -> dict:
         from needletissue.runinfo import to_jsonable
@@ -266,8 +282,18 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         tm_solve = q
     else:
         tm_solve = tm
+    contact = None
+    if config.interfaces != "bonded" or config.friction:
+        from needletissue.fem.contact import ContactSettings
+        from needletissue.fem.contact_needle import NeedleContact
+
+        contact = NeedleContact(config.interfaces, dict(config.friction),
+                                ContactSettings(dhat=config.contact_dhat, eps_v=config.contact_eps_v),
+                                materials=MATERIALS)
+        tm_solve = contact.prepare(tm_solve)  # split the contact interfaces (duplicate their nodes)
     model = FEModel(tm_solve, {r: MATERIALS[r] for r in tm.regions}, order=config.order,
                     formulation=config.formulation)
+    items = contact.items(model) if contact is not None else ()
     t_model = time.perf_counter() - t0 - t_mesh
     fdir = force_unit(config, pm.site)
     fmax = config.forces[-1]
@@ -277,7 +303,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         bcs.append(Fixed("sacroiliac_joint"))
     bcs.append(SurfaceForce("gripper", total=tuple(fmax * fdir)))
     factors = [f / fmax for f in config.forces]
-    fe = solve(model, bcs, load_factors=factors, solver=config.solver, progress=config.progress)
+    fe = solve(model, bcs, load_factors=factors, solver=config.solver, progress=config.progress, items=items)
     t_solve = time.perf_counter() - t0 - t_mesh - t_model
 
     qm = model.mesh
@@ -329,12 +355,20 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         boundary_conditions={"femur_fixed": "fixed", "sacrum_fixed": "fixed",
                              "sacroiliac_joint": config.si_joint, "midline": "u_x = 0 (symmetry)",
                              "gripper": "uniform surface force on the clamp's side faces (dead load)",
-                             "interfaces": "bonded (one conforming mesh)"},
+                             "interfaces": "bonded (one conforming mesh)" if contact is None else
+                             {"contact": dict(contact.friction), "bonded": "every other interface"}},
         notes=pm.notes,
         comparison=[],
         timing_s={"mesh": t_mesh, "model": t_model, "solve": t_solve, "cpu_s": time.process_time() - c0},
         ritz=ritz,
     )
+    if contact is not None:
+        per_force = []
+        for f, r in zip(config.forces, fe):
+            gaps, penetration = contact.gaps(r.displacement)
+            per_force.append({"force_N": f, "max_gap_opening_mm": gaps, "max_interpenetration_mm": penetration})
+        res.contact = {"interfaces": dict(contact.friction), "settings": contact.settings_dict(),
+                       "per_force": per_force}
     if config.source == "ct" and config.crosscheck_thickness:
         res.thickness_img = thickness_crosscheck(config, pm)
     res.comparison = comparison_table(res)
