@@ -5,7 +5,8 @@ The paper meshed its (whole) pelvis with linear tets, 1 mm on the needles and 3 
 reduced to 2.45 mm (uniform, no far-field grading) to reach the paper's element count; see
 docs/pelvis_model.md ("Paper-scale run"). Same as
 `needletissue fe pelvis --order 1 --needle-size 1 --mesh-size 2.45 --far-size 2.45 --force 300`
-without the 3D render. Needs ../shared/data. Run with `nice`; it takes ~10-30 min and ~10 GB.
+without the 3D render. Needs ../shared/data. Run with `nice`: measured 26.2 min wall on the busy shared
+2-core machine (1527 s CPU), 8.2 GiB peak RSS, 1,345,969 tets, 752,010 dofs (docs/pelvis_model.md).
 
     PYTHONPATH=src nice python benchmarks/paper_scale_pelvis.py --out /tmp/pelvis_paperscale [--force 300]
 """

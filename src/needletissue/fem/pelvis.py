@@ -340,7 +340,10 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
                              "interfaces": "bonded (one conforming mesh)"},
         notes=pm.notes,
         comparison=[],
-        timing_s={"mesh": t_mesh, "model": t_model, "solve": t_solve, "cpu_s": time.process_time() - c0},
+        timing_s={"mesh": t_mesh, "model": t_model, "solve": t_solve, "cpu_s": time.process_time() - c0,
+                  # solve = Newton (assembly + linear solves) + stress/VTU evaluation
+                  "newton": fe[-1].timing_s.get("newton"), "linear_solve": fe[-1].timing_s.get("linear_solve"),
+                  "linear_solver": fe[-1].linear_solver},
         ritz=ritz,
     )
     if config.source == "ct" and config.crosscheck_thickness:
