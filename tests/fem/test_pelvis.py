@@ -174,6 +174,11 @@ def test_bad_inputs_name_the_field():
         PelvisConfig(friction={"needle-muscle": -0.3})
     with pytest.raises(InputError, match="contact_dhat"):
         PelvisConfig(contact_dhat=0.0)
+    for kw, field in ((dict(order=3), "order"), (dict(order=True), "order"),
+                      (dict(needle_size=0.1), "needle_size"), (dict(needle_size=float("nan")), "needle_size"),
+                      (dict(mesh_size=3.0, far_size=2.0), "far_size"), (dict(formulation="p2p1"), "formulation")):
+        with pytest.raises(InputError, match=field):
+            PelvisConfig(**kw)
 
 
 def test_coarse_solve_equilibrium_and_monotone(tmp_path):
@@ -197,12 +202,29 @@ def test_coarse_solve_equilibrium_and_monotone(tmp_path):
     assert np.linalg.norm(R + F) < 0.01 * 100.0, (R, F)
 
 
-def test_cli_rejects_bad_force():
-    code = ("import sys; sys.argv = ['needletissue', 'fe', 'pelvis', '--force', '-1'];"
+@pytest.mark.parametrize("args, field", [(["--force", "-1"], "force"), (["--order", "3"], "order"),
+                                         (["--needle-size", "0"], "needle_size")])
+def test_cli_rejects_bad_input(args, field):
+    code = (f"import sys; sys.argv = ['needletissue', 'fe', 'pelvis', *{args!r}];"
             "from needletissue.cli import main; main()")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ))
     assert r.returncode == 2, r.stderr
-    assert "force" in r.stderr and "Traceback" not in r.stderr
+    assert field in r.stderr and "Traceback" not in r.stderr
+
+
+def test_linear_order_coarse_solve_equilibrium():
+    """order=1 (the paper-scale run's element type) on a coarse mesh (~17 k tets, ~20 s): the solve uses
+    the linear mesh itself (no midside nodes) and the supports carry the applied force."""
+    from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+
+    res = run_pelvis_model(PelvisConfig(order=1, mesh_size=6.0, needle_size=1.5, far_size=18.0, forces=[300.0],
+                                        figures=False, crosscheck_thickness=False))
+    assert res.mesh["order"] == 1 and res.mesh["nodes"] == res.mesh["linear_nodes"]
+    r = res.results[-1]
+    assert r.max_needle_deformation_mm > max(v for k, v in r.max_deformation_mm.items() if k in gp.SOFT_TISSUES)
+    R = np.sum([np.asarray(v) for v in r.reactions_N.values()], axis=0)
+    F = 300.0 * np.asarray(res.force_vector_unit)
+    assert np.linalg.norm(R + F) < 0.01 * 300.0, (R, F)
 
 
 def test_ssm_source_layers_and_hip_joint():

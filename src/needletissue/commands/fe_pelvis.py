@@ -19,6 +19,12 @@ def register(app, groups) -> None:
         site: str = typer.Option("supra_acetabular", "--site", help="supra_acetabular or iliac_crest."),
         side: str = typer.Option("right", "--side", help="Hemipelvis with the needles: right or left."),
         mesh_size: float = typer.Option(3.0, "--mesh-size", help="Soft-tissue element size at the needles, mm."),
+        needle_size: float = typer.Option(None, "--needle-size",
+                                          help="Needle element size, mm (default 2/3 of --mesh-size)."),
+        far_size: float = typer.Option(None, "--far-size",
+                                       help="Element size 35 mm and more from the needles, mm (default 4x --mesh-size)."),
+        order: int = typer.Option(2, "--order", help="Element order: 2 (tetra10, curved needles) or 1 (linear "
+                                                     "tets, the paper's; needs fine needles, see docs)."),
         needle_diameter: float = typer.Option(5.0, "--needle-diameter", help="Needle diameter, mm."),
         si_joint: str = typer.Option("fixed", "--si-joint", help="Sacroiliac joint: fixed (paper) or bonded."),
         out: Path = typer.Option(None, "--out", help="Folder for VTU, figures, config, versions and results."),
@@ -55,7 +61,8 @@ def register(app, groups) -> None:
         config = PelvisConfig(
             source="ssm" if ssm else "ct", ct=str(ct) if ct else None, labels=str(labels) if labels else None,
             side=side, site=site, forces=list(force) if force else [100.0, 200.0, 300.0], force_direction=fdir,
-            mesh_size=mesh_size, needle_diameter=needle_diameter, si_joint=si_joint,
+            mesh_size=mesh_size, needle_size=needle_size, far_size=far_size, order=order,
+            needle_diameter=needle_diameter, si_joint=si_joint,
             out=str(out) if out else None, progress=not json_out,
             interfaces=interfaces, friction=parse_friction(friction or []), contact_dhat=contact_dhat,
             contact_eps_v=contact_eps_v,

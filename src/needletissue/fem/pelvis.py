@@ -70,7 +70,9 @@ class PelvisConfig:
     mesh_size       soft-tissue element size next to the needles, mm (paper: 3)
     needle_size     needle element size, mm (default 2*mesh_size/3; quadratic tets)
     far_size        element size far (refine_radius) from the needles, mm (default 4*mesh_size)
-    order           2 (tetra10; needles need it in bending) or 1
+    order           2 (tetra10, curved needle surfaces; the default) or 1 (linear tets: the paper's element
+                    type, for the paper-scale run of benchmarks/paper_scale_pelvis.py; stiffer in bending,
+                    so it needs fine needles, and the needles stay inscribed polygons)
     si_joint        "fixed" (paper) or "bonded"
     interfaces      "bonded" (one conforming mesh) or "paper" (frictional contact: needle-muscle 0.3,
                     muscle-bone 0.3, bone-needle 0.9; docs/contact.md)
@@ -131,8 +133,14 @@ class PelvisConfig:
         d = np.asarray(self.force_direction, float)
         if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
             raise InputError("force_direction", f"must be a non-zero 3-vector, got {self.force_direction}")
-        if self.order not in (1, 2):
-            raise InputError("order", f"must be 1 or 2, got {self.order}")
+        if self.order not in (1, 2) or isinstance(self.order, bool):
+            raise InputError("order", f"must be 1 (linear tets) or 2 (tetra10), got {self.order!r}")
+        if self.needle_size is not None:
+            check_number("needle_size", self.needle_size, ge=0.2, le=10)
+        if self.far_size is not None:
+            check_number("far_size", self.far_size, ge=self.mesh_size, le=60)
+        if self.formulation not in ("displacement", "mixed"):
+            raise InputError("formulation", f"must be 'displacement' or 'mixed', got {self.formulation!r}")
 
 
 @dataclass
@@ -359,7 +367,10 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
                              {"contact": dict(contact.friction), "bonded": "every other interface"}},
         notes=pm.notes,
         comparison=[],
-        timing_s={"mesh": t_mesh, "model": t_model, "solve": t_solve, "cpu_s": time.process_time() - c0},
+        timing_s={"mesh": t_mesh, "model": t_model, "solve": t_solve, "cpu_s": time.process_time() - c0,
+                  # solve = Newton (assembly + linear solves) + stress/VTU evaluation
+                  "newton": fe[-1].timing_s.get("newton"), "linear_solve": fe[-1].timing_s.get("linear_solve"),
+                  "linear_solver": fe[-1].linear_solver},
         ritz=ritz,
     )
     if contact is not None:
