@@ -255,3 +255,23 @@ def test_material_groups_name_anatomical_regions():
     assert resolve_interfaces(box, "paper", groups=groups) == {"muscle-bone": 0.3}
     split, (itf,) = split_interfaces(box, ["muscle-bone"], groups)
     assert itf.regions_a == ("iliopsoas",) and itf.regions_b == ("hip_cortical",)
+
+
+@pytest.mark.slow
+def test_needle_model_with_paper_interfaces_is_more_compliant_and_opens_a_gap():
+    """Coarse one-needle model at 30 N, bonded vs the paper's frictional interfaces on the same mesh:
+    contact lets the tissue slide and separate, so the needle deflects more than bonded; the muscle
+    opens behind the needle (gap > 0); the barrier keeps interpenetration below dhat; the supports
+    carry the applied force (equilibrium with the contact item's forces inside the model)."""
+    from needletissue.fem.contact_needle import compare_interfaces
+    from needletissue.fem.needle import NeedleModelConfig, with_geometry
+
+    cfg = with_geometry(NeedleModelConfig(forces=(30.0,), ritz=False), needles=1, needle_mesh_size=3.0,
+                        mesh_size=8.0)
+    res = compare_interfaces(cfg)
+    (row,) = res.rows
+    assert set(res.interfaces) == {"needle-muscle", "muscle-bone", "bone-needle"}
+    assert row.needle_max_contact_mm > row.needle_max_bonded_mm
+    assert row.max_gap_opening_mm["needle-muscle"] > 0.05
+    assert row.max_interpenetration_mm < res.settings["needle-muscle"]["dhat_mm"]
+    assert res.cost_ratio > 1

@@ -45,11 +45,12 @@ def register(app: typer.Typer, groups) -> None:
         friction: Optional[List[str]] = typer.Option(None, "--friction", help="Per-pair friction "
                                                      "coefficient (>= 0, dimensionless), e.g. "
                                                      "needle-muscle=0.3; repeat; makes that pair a contact."),
-        contact_dhat: float = typer.Option(0.05, "--contact-dhat", help="Contact barrier distance, mm (> 0): "
-                                           "largest interpenetration; smaller is stiffer and harder to "
-                                           "converge (docs/contact.md)."),
-        contact_eps_v: float = typer.Option(0.001, "--contact-eps-v", help="Friction smoothing, mm of slip "
-                                            "per load increment (> 0) below which an interface sticks."),
+        contact_dhat: Optional[float] = typer.Option(None, "--contact-dhat", help="Contact barrier distance, mm "
+                                                     "(> 0; default 0.1): largest interpenetration; smaller is "
+                                                     "stiffer and harder to converge (docs/contact.md)."),
+        contact_eps_v: Optional[float] = typer.Option(None, "--contact-eps-v", help="Friction smoothing, mm of "
+                                                      "slip per load increment (> 0; default 0.001) below which "
+                                                      "an interface sticks."),
     ):
         """Solve the needle-tissue-bone model at each force; report needle, clamp and tissue deformation
         and the Rayleigh-Ritz comparison. Units: mm, N, MPa."""
@@ -74,8 +75,9 @@ def register(app: typer.Typer, groups) -> None:
 
             from needletissue.errors import check_number
 
-            settings = ContactSettings(dhat=check_number("--contact-dhat", contact_dhat, gt=0),
-                                       eps_v=check_number("--contact-eps-v", contact_eps_v, gt=0))
+            given = {k: check_number(f"--contact-{k.replace('_', '-')}", v, gt=0)
+                     for k, v in (("dhat", contact_dhat), ("eps_v", contact_eps_v)) if v is not None}
+            settings = ContactSettings(**given)
             hooks = NeedleContact(interfaces, parse_friction(friction or []), settings).hooks()
         result = run_needle_model(cfg, out, **hooks)
         if json_out:

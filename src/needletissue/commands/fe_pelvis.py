@@ -34,10 +34,11 @@ def register(app, groups) -> None:
                                        "0.9; docs/contact.md)."),
         friction: list[str] = typer.Option(None, "--friction", help="Per-pair friction coefficient (>= 0), "
                                            "e.g. needle-muscle=0.3; repeat; makes that pair a contact."),
-        contact_dhat: float = typer.Option(0.05, "--contact-dhat", help="Contact barrier distance, mm (> 0)."),
-        contact_eps_v: float = typer.Option(0.001, "--contact-eps-v",
+        contact_dhat: float = typer.Option(None, "--contact-dhat",
+                                           help="Contact barrier distance, mm (> 0; default 0.1)."),
+        contact_eps_v: float = typer.Option(None, "--contact-eps-v",
                                             help="Friction smoothing: slip per load increment below which an "
-                                                 "interface sticks, mm (> 0)."),
+                                                 "interface sticks, mm (> 0; default 0.001)."),
     ):
         """Hemipelvis from CT (or SSM) with two needles and a clamp; max needle and tissue deformation,
         ranking, thickness along the needles and the Ritz comparison. Units mm, N."""

@@ -56,7 +56,7 @@ class ContactSettings:
       body held only by contact is not singular at the first iteration).
     """
 
-    dhat: float = 5e-2
+    dhat: float = 1e-1
     stiffness: float | None = None
     youngs_modulus: float = 1.0
     eps_v: float = 1e-3

@@ -105,8 +105,8 @@ class PelvisConfig:
     si_joint: str = "fixed"
     interfaces: str = "bonded"
     friction: dict = field(default_factory=dict)
-    contact_dhat: float = 0.05
-    contact_eps_v: float = 0.001
+    contact_dhat: float | None = None  # None: ContactSettings' default
+    contact_eps_v: float | None = None
     solver: str = "auto"
     out: str | None = None
     figures: bool = True
@@ -122,8 +122,9 @@ class PelvisConfig:
             raise InputError("interfaces", f"must be 'bonded' or 'paper', got {self.interfaces!r}")
         for name, mu in self.friction.items():
             check_number(f"friction {name}", mu, ge=0)
-        check_number("contact_dhat", self.contact_dhat, gt=0)
-        check_number("contact_eps_v", self.contact_eps_v, gt=0)
+        for name in ("contact_dhat", "contact_eps_v"):
+            if getattr(self, name) is not None:
+                check_number(name, getattr(self, name), gt=0)
         if not self.forces:
             raise InputError("force", "give at least one force (N), e.g. --force 100 --force 200 --force 300")
         self.forces = sorted(check_number("force", f, gt=0, le=5000) for f in self.forces)
@@ -296,7 +297,8 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         from needletissue.fem.contact_needle import NeedleContact
 
         contact = NeedleContact(config.interfaces, dict(config.friction),
-                                ContactSettings(dhat=config.contact_dhat, eps_v=config.contact_eps_v),
+                                ContactSettings(**{k: v for k, v in (("dhat", config.contact_dhat),
+                                                                     ("eps_v", config.contact_eps_v)) if v is not None}),
                                 materials=MATERIALS)
         tm_solve = contact.prepare(tm_solve)  # split the contact interfaces (duplicate their nodes)
     model = FEModel(tm_solve, {r: MATERIALS[r] for r in tm.regions}, order=config.order,
