@@ -13,7 +13,7 @@ from needletissue.fem.contact import ContactSettings, resolve_interfaces
 from needletissue.fem.contact_mesh import split_interfaces
 from needletissue.fem.contact_verify import build_model, solve_steps, stacked_boxes
 
-DHAT = 1e-2
+DHAT = 0.1  # the default (ContactSettings.dhat)
 EPS_V = 1e-3
 MU = 0.3
 LAG = "step"

@@ -120,7 +120,9 @@ def unit_pressure(dhat: float, distance: float) -> float:
 def _collisions():
     c = ipctk.NormalCollisions()
     c.use_area_weighting = True
-    c.collision_set_type = ipctk.NormalCollisions.IMPROVED_MAX_APPROX
+    # the standard IPC collision set: with IMPROVED_MAX_APPROX Newton stalled, its residual jumping
+    # between 1e-8 and 1e-3 at every load (anatomical model, first increment); IPC converges quadratically
+    c.collision_set_type = ipctk.NormalCollisions.IPC
     return c
 
 
@@ -235,6 +237,8 @@ class _ContactResults(Results):
         self._item = item
 
     def update_statevars(self):
+        # keep the slip reference and lag of the step just converged: its forces (contact_forces)
+        self._item._accepted = (self.statevars.copy(), self._item._lagged)
         super().update_statevars()
         if self._item.settings.lag == "step":
             self._item.update_lag()
@@ -279,6 +283,7 @@ class FrictionalContact:
         self.results.statevars = np.zeros((nv, 3))
         self.results.info = {}
         self._lagged = None  # (vertices, collisions) of the last converged step for lag="step"
+        self._accepted = None  # (slip reference, lag) with which the last converged step was solved
         self._state = None
         self.assemble = Assemble(vector=self._vector, matrix=self._matrix)
 
@@ -297,11 +302,12 @@ class FrictionalContact:
         return bool(self._evaluate()["admissible"])
 
     def checkpoint(self):
-        return {"statevars": self.results.statevars.copy(), "lagged": self._lagged}
+        return {"statevars": self.results.statevars.copy(), "lagged": self._lagged, "accepted": self._accepted}
 
     def restore(self, checkpoint):
         self.results.statevars = checkpoint["statevars"].copy()
         self._lagged = checkpoint["lagged"]
+        self._accepted = checkpoint.get("accepted")
 
     def _global_vector(self, g):
         shape = (self._ndof_total(), 1)
@@ -389,11 +395,20 @@ class FrictionalContact:
         }
 
     def contact_forces(self) -> np.ndarray:
-        """Nodal contact + friction forces on the collision vertices (nv, 3), N (at the last state)."""
-        s = self._evaluate()
-        g = self.barrier.gradient(self.collisions, self.cmesh, s["V"])
-        if len(self.tangential) > 0:
-            g = g + self.friction.gradient(self.tangential, self.cmesh, s["slip"])
+        """Nodal contact + friction forces on the collision vertices (nv, 3), N, at the current state,
+        with the friction of the step that converged to it (its slip and lagged normal forces)."""
+        u = self._u()
+        V = self.positions(u)
+        reference, lag = self._accepted if self._accepted is not None else (self.results.statevars, self._lagged)
+        collisions = _collisions()
+        collisions.build(self.cmesh, V, self.settings.dhat)
+        g = self.barrier.gradient(collisions, self.cmesh, V)
+        if self.settings.lag == "iteration":
+            lag = (V, collisions)
+        if lag is not None and np.any(self.mu > 0) and len(lag[1]) > 0:
+            tangential = ipctk.TangentialCollisions()
+            tangential.build(self.cmesh, lag[0], lag[1], self.barrier, self.mu, self.mu)
+            g = g + self.friction.gradient(tangential, self.cmesh, np.asfortranarray(u - reference))
         return -g.reshape(-1, 3)
 
     def gap_opening(self, displacement: np.ndarray) -> dict[str, np.ndarray]:
