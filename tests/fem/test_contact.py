@@ -275,17 +275,3 @@ def test_needle_model_with_paper_interfaces_is_more_compliant_and_opens_a_gap():
     assert row.max_gap_opening_mm["needle-muscle"] > 0.05
     assert row.max_interpenetration_mm < res.settings["needle-muscle"]["dhat_mm"]
     assert res.cost_ratio > 1
-
-
-def test_split_only_where_selected():
-    """A `where` mask keeps part of an interface bonded: only the selected faces' nodes are duplicated."""
-    box = stacked_boxes({"lower": ((0, 0, -5), (10, 10, 0)), "upper": ((0, 0, 0), (10, 10, 10))}, 2.5)
-    split, (itf,) = split_interfaces(box, ["lower-upper"], where=lambda c: c[:, 0] < 5.0)
-    full, (itf_full,) = split_interfaces(box, ["lower-upper"])
-    assert 0 < len(itf.faces_a) < len(itf_full.faces_a)
-    assert np.all(box.points[itf.nodes_a, 0] <= 5.0 + 1e-9)  # only nodes of the selected half
-    lower = set(np.unique(split.cells[split.regions["lower"]]))
-    upper = set(np.unique(split.cells[split.regions["upper"]]))
-    assert lower & upper  # the unselected half stays bonded (shared nodes)
-    with pytest.raises(InputError, match="does not exist"):
-        split_interfaces(box, ["lower-upper"], where=lambda c: c[:, 0] > 100)

@@ -174,8 +174,6 @@ def test_bad_inputs_name_the_field():
         PelvisConfig(friction={"needle-muscle": -0.3})
     with pytest.raises(InputError, match="contact_dhat"):
         PelvisConfig(contact_dhat=0.0)
-    with pytest.raises(InputError, match="contact_radius"):
-        PelvisConfig(contact_radius=-1.0)
     for kw, field in ((dict(order=3), "order"), (dict(order=True), "order"),
                       (dict(needle_size=0.1), "needle_size"), (dict(needle_size=float("nan")), "needle_size"),
                       (dict(mesh_size=3.0, far_size=2.0), "far_size"), (dict(formulation="p2p1"), "formulation")):

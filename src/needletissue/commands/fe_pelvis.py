@@ -39,10 +39,6 @@ def register(app, groups) -> None:
         contact_eps_v: float = typer.Option(None, "--contact-eps-v",
                                             help="Friction smoothing: slip per load increment below which an "
                                                  "interface sticks, mm (> 0; default 0.001)."),
-        contact_radius: float = typer.Option(None, "--contact-radius",
-                                             help="Interfaces are in contact only within this distance of a "
-                                                  "needle axis, mm (> 0; default 35, the refinement radius); "
-                                                  "bonded further out (muscle attachments)."),
     ):
         """Hemipelvis from CT (or SSM) with two needles and a clamp; max needle and tissue deformation,
         ranking, thickness along the needles and the Ritz comparison. Units mm, N."""
@@ -70,7 +66,7 @@ def register(app, groups) -> None:
             needle_diameter=needle_diameter, si_joint=si_joint,
             out=str(out) if out else None, progress=not json_out,
             interfaces=interfaces, friction=parse_friction(friction or []), contact_dhat=contact_dhat,
-            contact_eps_v=contact_eps_v, contact_radius=contact_radius,
+            contact_eps_v=contact_eps_v,
         )
         res = run_pelvis_model(config)
         d = res.to_dict()

@@ -124,13 +124,8 @@ def interface_faces(mesh, regions_a, regions_b):
     return fa[ia], fb[ib]
 
 
-def split_interfaces(mesh, names, groups: dict[str, tuple[str, ...]] | None = None,
-                     where=None) -> tuple[object, list[SplitInterface]]:
+def split_interfaces(mesh, names, groups: dict[str, tuple[str, ...]] | None = None) -> tuple[object, list[SplitInterface]]:
     """Duplicate the nodes of each named interface on its side b (the second group).
-
-    ``where(centroids (k, 3)) -> bool mask`` keeps only the interface faces it selects (the rest stay
-    bonded; along the rim of the selected patch side b detaches by one row of nodes, as at a ring
-    line).
 
     Returns a new mesh of the same dataclass type (points appended, side-b cells and side-b faces of
     the named surfaces renumbered) and one SplitInterface per name. Raises InputError for a name that
@@ -157,9 +152,6 @@ def split_interfaces(mesh, names, groups: dict[str, tuple[str, ...]] | None = No
             raise InputError("interfaces", f"interface {name!r}: both sides contain {sorted(set(ra) & set(rb))}")
         current = dataclasses.replace(mesh, points=points, cells=cells)
         faces_a, faces_b = interface_faces(current, ra, rb)
-        if where is not None and len(faces_a):
-            keep = np.asarray(where(points[faces_a[:, :3]].mean(axis=1)), dtype=bool)
-            faces_a, faces_b = faces_a[keep], faces_b[keep]
         if len(faces_a) == 0:
             raise InputError(
                 "interfaces",

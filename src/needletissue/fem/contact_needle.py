@@ -31,7 +31,6 @@ class NeedleContact:
     overrides: dict[str, float] = field(default_factory=dict)
     settings: ContactSettings | None = None
     materials: dict[str, str] | None = None  # region -> material; None: the needle model's regions
-    where: object = None  # where(centroids (k, 3)) -> mask of the interface faces in contact (None: all)
     friction: dict[str, float] = field(default_factory=dict, init=False)
     item: FrictionalContact | None = field(default=None, init=False)
     item_list: list = field(default_factory=list, init=False)
@@ -87,7 +86,7 @@ class NeedleContact:
         self.friction = resolve_interfaces(mesh, self.interfaces, self.overrides, groups)
         if not self.friction:
             return mesh
-        mesh, self._split = split_interfaces(mesh, list(self.friction), groups, self.where)
+        mesh, self._split = split_interfaces(mesh, list(self.friction), groups)
         return mesh
 
     def items(self, model) -> list:

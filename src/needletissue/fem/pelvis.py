@@ -79,10 +79,6 @@ class PelvisConfig:
     friction        {"needle-muscle": 0.3, ...} per-pair friction coefficients (>= 0); each becomes a contact
     contact_dhat    contact barrier distance = largest interpenetration, mm
     contact_eps_v   friction smoothing: slip per load increment below which an interface sticks, mm
-    contact_radius  only interface faces within this distance of a needle axis are in contact, mm
-                    (default refine_radius); further out every interface stays bonded (muscle origins
-                    and insertions: with all muscle-bone faces in contact the soft tissue is held by
-                    contact alone and the first, frictionless increment has no equilibrium)
     """
 
     source: str = "ct"
@@ -111,7 +107,6 @@ class PelvisConfig:
     friction: dict = field(default_factory=dict)
     contact_dhat: float | None = None  # None: ContactSettings' default
     contact_eps_v: float | None = None
-    contact_radius: float | None = None
     solver: str = "auto"
     out: str | None = None
     figures: bool = True
@@ -127,7 +122,7 @@ class PelvisConfig:
             raise InputError("interfaces", f"must be 'bonded' or 'paper', got {self.interfaces!r}")
         for name, mu in self.friction.items():
             check_number(f"friction {name}", mu, ge=0)
-        for name in ("contact_dhat", "contact_eps_v", "contact_radius"):
+        for name in ("contact_dhat", "contact_eps_v"):
             if getattr(self, name) is not None:
                 check_number(name, getattr(self, name), gt=0)
         if not self.forces:
@@ -185,20 +180,6 @@ class PelvisResult:
         from needletissue.runinfo import to_jsonable
 
         return to_jsonable(asdict(self))
-
-
-def near_needles(axes, radius: float):
-    """Mask function: points within `radius` (mm) of any needle axis segment (p0, p1)."""
-    segments = [(np.asarray(a, float), np.asarray(b, float)) for a, b in axes]
-
-    def where(x):
-        d = np.full(len(x), np.inf)
-        for a, b in segments:
-            t = np.clip((x - a) @ (b - a) / ((b - a) @ (b - a)), 0.0, 1.0)
-            d = np.minimum(d, np.linalg.norm(x - (a + t[:, None] * (b - a)), axis=1))
-        return d <= radius
-
-    return where
 
 
 def build(config: PelvisConfig):
@@ -318,8 +299,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         contact = NeedleContact(config.interfaces, dict(config.friction),
                                 ContactSettings(**{k: v for k, v in (("dhat", config.contact_dhat),
                                                                      ("eps_v", config.contact_eps_v)) if v is not None}),
-                                materials=MATERIALS,
-                                where=near_needles(pm.needle_axes, config.contact_radius or config.refine_radius))
+                                materials=MATERIALS)
         tm_solve = contact.prepare(tm_solve)  # split the contact interfaces (duplicate their nodes)
     model = FEModel(tm_solve, {r: MATERIALS[r] for r in tm.regions}, order=config.order,
                     formulation=config.formulation)
