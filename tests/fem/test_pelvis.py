@@ -261,3 +261,26 @@ def test_curving_that_would_invert_an_element_is_undone():
     fixed = gp._straighten_inverted(curved.copy(), straight, mesh.cells)
     assert np.array_equal(fixed[mid], straight[mid]) and not np.array_equal(fixed[harmless], straight[harmless])
     assert fem.RegionQuadraticTetra(fem.Mesh(fixed, mesh.cells, "tetra10")).dV.min() > 0
+
+
+@pytest.mark.slow
+def test_needle_interfaces_in_contact_are_more_compliant(tmp_path):
+    """Coarse anatomical model at 20 N with needle-muscle (0.3) and bone-needle (0.9) in frictional
+    contact: the supports still carry the force, the needles move more than with bonded interfaces,
+    and the barrier keeps the interpenetration below dhat (results' "contact" field)."""
+    from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+
+    kw = dict(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[20.0], figures=False,
+              crosscheck_thickness=False)
+    bonded = run_pelvis_model(PelvisConfig(**kw))
+    res = run_pelvis_model(PelvisConfig(**kw, friction={"needle-muscle": 0.3, "bone-needle": 0.9},
+                                        out=str(tmp_path)))
+    assert res.results[0].max_needle_deformation_mm > bonded.results[0].max_needle_deformation_mm
+    data = json.loads((tmp_path / "pelvis_results.json").read_text(encoding="utf-8"))
+    contact = data["contact"]
+    assert set(contact["interfaces"]) == {"needle-muscle", "bone-needle"}
+    dhat = contact["settings"]["needle-muscle"]["dhat_mm"]
+    assert 0 <= contact["per_force"][0]["max_interpenetration_mm"] < dhat
+    R = np.sum([np.asarray(v) for v in data["results"][0]["reactions_N"].values()], axis=0)
+    F = 20.0 * np.asarray(data["force_vector_unit"])
+    assert np.linalg.norm(R + F) < 0.01 * 20.0, (R, F)
