@@ -12,8 +12,8 @@ the sacroiliac joint"):
   midline           u_x = 0 on the medial crop plane (mirror symmetry of the other hemipelvis)
   gripper           the reduction force, spread uniformly over the clamp bar's two side faces (the robot's
                     jaws; same convention as the `needle` branch), resultant at the clamp's mid-height
-Everything else is bonded (one conforming mesh: the paper's frictional interfaces are the `contact`
-branch's subject).
+Everything else is bonded (one conforming mesh) unless `interfaces`/`friction` make the needle,
+muscle and bone interfaces frictional contacts (needletissue.fem.contact; docs/contact.md).
 """
 
 from __future__ import annotations
