@@ -328,17 +328,27 @@ class FrictionalContact:
         state = {"u": u, "V": V, "admissible": admissible}
         if admissible:
             self.collisions.build(self.cmesh, V, self.settings.dhat)
-            self.tangential = ipctk.TangentialCollisions()
-            if self.settings.lag == "iteration":
-                lag_V, lag_c = V, self.collisions
-            else:
-                lag_V, lag_c = self._lagged if self._lagged is not None else (V0, ipctk.NormalCollisions())
-            if np.any(self.mu > 0) and len(lag_c) > 0:
-                self.tangential.build(self.cmesh, lag_V, lag_c, self.barrier, self.mu, self.mu)
+            self.tangential = self._tangential(V, self.collisions, self._lagged)
             state["slip"] = np.asfortranarray(u - u_prev)
         self._state = state
         self.results._statevars = u.copy()
         return state
+
+    def _tangential(self, V, collisions, lagged):
+        """Friction pairs: from the current collisions (lag="iteration") or the lagged (vertices,
+        collisions) of a converged state (lag="step"; None: none yet, frictionless)."""
+        tangential = ipctk.TangentialCollisions()
+        lag = (V, collisions) if self.settings.lag == "iteration" else lagged
+        if lag is not None and np.any(self.mu > 0) and len(lag[1]) > 0:
+            tangential.build(self.cmesh, lag[0], lag[1], self.barrier, self.mu, self.mu)
+        return tangential
+
+    def _gradient(self, V, collisions, tangential, slip):
+        """Gradient of barrier + friction potential on the collision-vertex dofs."""
+        g = self.barrier.gradient(collisions, self.cmesh, V)
+        if len(tangential) > 0:
+            g = g + self.friction.gradient(tangential, self.cmesh, slip)
+        return g
 
     def _vector(self, field=None, parallel=False):
         if field is not None:
@@ -347,9 +357,7 @@ class FrictionalContact:
         if not s["admissible"]:
             g = np.full(len(self.dofs), np.nan)
         else:
-            g = self.barrier.gradient(self.collisions, self.cmesh, s["V"])
-            if len(self.tangential) > 0:
-                g = g + self.friction.gradient(self.tangential, self.cmesh, s["slip"])
+            g = self._gradient(s["V"], self.collisions, self.tangential, s["slip"])
             self.results.info = self.contact_state(s["V"])
         self.results.force = self._global_vector(g)
         return self.results.force
@@ -402,14 +410,8 @@ class FrictionalContact:
         reference, lag = self._accepted if self._accepted is not None else (self.results.statevars, self._lagged)
         collisions = _collisions()
         collisions.build(self.cmesh, V, self.settings.dhat)
-        g = self.barrier.gradient(collisions, self.cmesh, V)
-        if self.settings.lag == "iteration":
-            lag = (V, collisions)
-        if lag is not None and np.any(self.mu > 0) and len(lag[1]) > 0:
-            tangential = ipctk.TangentialCollisions()
-            tangential.build(self.cmesh, lag[0], lag[1], self.barrier, self.mu, self.mu)
-            g = g + self.friction.gradient(tangential, self.cmesh, np.asfortranarray(u - reference))
-        return -g.reshape(-1, 3)
+        tangential = self._tangential(V, collisions, lag)
+        return -self._gradient(V, collisions, tangential, np.asfortranarray(u - reference)).reshape(-1, 3)
 
     def gap_opening(self, displacement: np.ndarray) -> dict[str, np.ndarray]:
         """Normal opening (mm, > 0 = separated) of each originally coincident node pair per interface."""

@@ -63,16 +63,19 @@ class NeedleContact:
             "dhat_mm": i.settings.dhat, "stiffness_MPa_per_mm": i.settings.kappa,
             "eps_v_mm": i.settings.eps_v, "lag": i.settings.lag} for i in self.item_list}
 
-    def report(self, result) -> dict:
-        """The "contact" fields of the needle model's results: interfaces, settings and per force the
-        gap opening per interface and the interpenetration (mm)."""
+    def summary(self, forces, displacements) -> dict:
+        """Interfaces, settings and per force the gap opening per interface and the interpenetration
+        (mm), for the displacement fields solved at `forces` (N)."""
         per_force = []
-        for r in result.results:
-            gaps, penetration = self.gaps(r.fe.displacement)
-            per_force.append({"force_N": r.force_N, "max_gap_opening_mm": gaps,
-                              "max_interpenetration_mm": penetration})
-        return {"contact": {"interfaces": dict(self.friction), "settings": self.settings_dict(),
-                            "per_force": per_force}}
+        for force, u in zip(forces, displacements):
+            gaps, penetration = self.gaps(u)
+            per_force.append({"force_N": force, "max_gap_opening_mm": gaps, "max_interpenetration_mm": penetration})
+        return {"interfaces": dict(self.friction), "settings": self.settings_dict(), "per_force": per_force}
+
+    def report(self, result) -> dict:
+        """The "contact" field of the needle model's results (see `summary`)."""
+        return {"contact": self.summary([r.force_N for r in result.results],
+                                        [r.fe.displacement for r in result.results])}
 
     def _materials(self) -> dict[str, str]:
         from needletissue.fem.needle import MATERIALS

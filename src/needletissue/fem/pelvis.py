@@ -376,12 +376,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         ritz=ritz,
     )
     if contact is not None:
-        per_force = []
-        for f, r in zip(config.forces, fe):
-            gaps, penetration = contact.gaps(r.displacement)
-            per_force.append({"force_N": f, "max_gap_opening_mm": gaps, "max_interpenetration_mm": penetration})
-        res.contact = {"interfaces": dict(contact.friction), "settings": contact.settings_dict(),
-                       "per_force": per_force}
+        res.contact = contact.summary(config.forces, [r.displacement for r in fe])
     if config.source == "ct" and config.crosscheck_thickness:
         res.thickness_img = thickness_crosscheck(config, pm)
     res.comparison = comparison_table(res)
