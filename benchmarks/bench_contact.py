@@ -11,28 +11,17 @@ The needle model (bonded vs the paper's interfaces) is timed by
 
 from __future__ import annotations
 
-import felupe as fem
 import numpy as np
 import pytest
 
 from needletissue.fem.contact import ContactSettings
-from needletissue.fem.contact_verify import build_model, solve_steps, stacked_boxes
+from needletissue.fem.contact_verify import pressed_blocks
 
 _MEDIANS: dict[str, float] = {}
 
 
 def _run(friction):
-    mesh = stacked_boxes({"lower": ((0, 0, -5), (10, 10, 0)), "upper": ((0, 0, 0), (10, 10, 10))}, 2.5)
-    mats = {"lower": fem.NeoHooke(mu=10, bulk=50), "upper": fem.NeoHooke(mu=1, bulk=5)}
-    m = build_model(mesh, mats, friction, ContactSettings(dhat=1e-2, youngs_modulus=3.0))
-    u = m.field[0]
-    bnd = {
-        "x0": fem.Boundary(u, fx=0, skip=(0, 1, 1)),
-        "y0": fem.Boundary(u, fy=0, skip=(1, 0, 1)),
-        "bottom": fem.Boundary(u, fz=-5, skip=(1, 1, 0)),
-        "top": fem.Boundary(u, fz=10, skip=(1, 1, 0)),
-    }
-    return solve_steps(m, bnd, lambda t: bnd["top"].update(-1.0 * t), [0.5, 1.0], initial_step=0.5)
+    return pressed_blocks(2.5, friction, ContactSettings(dhat=1e-2, youngs_modulus=3.0), factors=(0.5, 1.0))[1]
 
 
 @pytest.mark.parametrize("case", ["bonded", "contact"])

@@ -11,7 +11,7 @@ import pytest
 from needletissue.errors import ConvergenceError, InputError
 from needletissue.fem.contact import ContactSettings, resolve_interfaces
 from needletissue.fem.contact_mesh import split_interfaces
-from needletissue.fem.contact_verify import build_model, solve_steps, stacked_boxes
+from needletissue.fem.contact_verify import build_model, pressed_blocks, solve_steps, stacked_boxes
 
 DHAT = 0.1  # the default (ContactSettings.dhat)
 EPS_V = 1e-3
@@ -112,18 +112,8 @@ def test_block_sticks_below_mu_n_and_fails_to_find_equilibrium_above():
 def _pressed(h, friction, push=1.0):
     """Two blocks (G = 10 and 1 MPa) pressed by a prescribed top displacement; x = 0 and y = 0 are
     symmetry planes, the bottom slides on z = -5."""
-    mesh = stacked_boxes({"lower": ((0, 0, -5), (10, 10, 0)), "upper": ((0, 0, 0), (10, 10, 10))}, h)
-    mats = {"lower": fem.NeoHooke(mu=10, bulk=50), "upper": fem.NeoHooke(mu=1, bulk=5)}
-    m = build_model(mesh, mats, friction, ContactSettings(dhat=DHAT, youngs_modulus=3.0, eps_v=EPS_V))
+    m, sol = pressed_blocks(h, friction, ContactSettings(dhat=DHAT, youngs_modulus=3.0, eps_v=EPS_V), push)
     X = m.field.region.mesh.points
-    u = m.field[0]
-    bnd = {
-        "x0": fem.Boundary(u, fx=0, skip=(0, 1, 1)),
-        "y0": fem.Boundary(u, fy=0, skip=(1, 0, 1)),
-        "bottom": fem.Boundary(u, fz=-5, skip=(1, 1, 0)),
-        "top": fem.Boundary(u, fz=10, skip=(1, 1, 0)),
-    }
-    sol = solve_steps(m, bnd, lambda t: bnd["top"].update(-push * t), [1.0], initial_step=0.5)
     r = sol.steps[-1].reaction.reshape(-1, 3)
     top, bottom = np.isclose(X[:, 2], 10), np.isclose(X[:, 2], -5)
     return m, sol, r[top, 2].sum(), r[bottom, 2].sum()
@@ -199,10 +189,8 @@ def test_friction_option_parsing():
 
 
 def test_split_quadratic_mesh_keeps_midside_nodes_with_their_side():
-    from needletissue.fem import TaggedMesh
-
     box = stacked_boxes({"lower": ((0, 0, -5), (10, 10, 0)), "upper": ((0, 0, 0), (10, 10, 10))}, 2.5)
-    mesh = TaggedMesh(points=box.points, cells=box.cells, regions=box.regions, surfaces={}).to_quadratic()
+    mesh = box.to_quadratic()
     split, (itf,) = split_interfaces(mesh, ["lower-upper"])
     on_plane = np.flatnonzero(np.isclose(mesh.points[:, 2], 0.0))  # corner and midside nodes at z = 0
     assert len(split.points) == len(mesh.points) + len(on_plane)

@@ -1,7 +1,7 @@
 """Verification models for frictional contact: blocks on blocks, built and solved with FElupe.
 
-Used by tests/fem/test_contact*.py and benchmarks/bench_contact.py. ``BoxMesh`` follows the TaggedMesh
-contract (points, cells, regions, surfaces), so ``split_interfaces`` treats it like a model mesh.
+Used by tests/fem/test_contact*.py and benchmarks/bench_contact.py. ``stacked_boxes`` returns a
+TaggedMesh, so ``split_interfaces`` treats it like a model mesh.
 ``solve_steps`` is a small load-stepping Newton driver with line search and cut-back (the same
 behaviour ``needletissue.fem.solve`` has), so the contact item is verified without the full FE core.
 """
@@ -9,7 +9,7 @@ behaviour ``needletissue.fem.solve`` has), so the contact item is verified witho
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field as dc_field
+from dataclasses import dataclass
 
 import felupe as fem
 import numpy as np
@@ -18,20 +18,12 @@ from felupe.tools._newton import fun_items
 from needletissue.errors import ConvergenceError
 from needletissue.fem.contact import ContactSettings, ContactSurface, FrictionalContact
 from needletissue.fem.contact_mesh import split_interfaces
+from needletissue.fem.mesh import TaggedMesh
 
 
-@dataclass
-class BoxMesh:
-    """A conforming tetrahedral mesh of axis-aligned boxes (mm): one region per box."""
-
-    points: np.ndarray
-    cells: np.ndarray
-    regions: dict[str, np.ndarray]
-    surfaces: dict[str, np.ndarray] = dc_field(default_factory=dict)
-
-
-def stacked_boxes(boxes: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]], h: float) -> BoxMesh:
-    """Tetrahedralize the bounding grid with spacing h and keep the cells inside the named boxes.
+def stacked_boxes(boxes: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]], h: float) -> TaggedMesh:
+    """A conforming tetrahedral mesh of axis-aligned boxes (mm), one region per box: tetrahedralize the
+    bounding grid with spacing h and keep the cells inside the named boxes.
 
     Box corners must lie on the grid, so touching boxes share their interface nodes (conforming).
     """
@@ -51,14 +43,14 @@ def stacked_boxes(boxes: dict[str, tuple[tuple[float, float, float], tuple[float
     used = np.unique(cells)
     renum = np.full(len(grid.points), -1)
     renum[used] = np.arange(len(used))
-    return BoxMesh(points=grid.points[used].copy(), cells=renum[cells], regions=regions)
+    return TaggedMesh(points=grid.points[used].copy(), cells=renum[cells], regions=regions)
 
 
 @dataclass
 class BlockModel:
     """FElupe bodies on one global field, plus the contact item (None when bonded)."""
 
-    mesh: BoxMesh
+    mesh: TaggedMesh
     field: fem.FieldContainer
     solids: list
     contact: FrictionalContact | None
@@ -68,7 +60,7 @@ class BlockModel:
         return self.solids + ([self.contact] if self.contact is not None else [])
 
 
-def build_model(mesh: BoxMesh, materials: dict[str, object], friction: dict[str, float] | None,
+def build_model(mesh: TaggedMesh, materials: dict[str, object], friction: dict[str, float] | None,
                 settings: ContactSettings = ContactSettings()) -> BlockModel:
     """One SolidBody per region (umat per region), split + contact item for ``friction`` interfaces."""
     interfaces = []
@@ -167,3 +159,21 @@ def solve_steps(model: BlockModel, boundaries: dict, apply, factors, *, initial_
         info = model.contact.contact_state() if model.contact is not None else {}
         results.append(StepResult(target, field[0].values.copy(), r, last_iter, info))
     return Solution(results, time.perf_counter() - t0, total_iter, substeps)
+
+
+def pressed_blocks(h: float, friction: dict[str, float] | None, settings: ContactSettings, push: float = 1.0,
+                   factors=(1.0,)) -> tuple[BlockModel, Solution]:
+    """Two 10 mm blocks (lower G = 10 MPa, upper G = 1 MPa, element size h mm) pressed together by a
+    prescribed top displacement `push` (mm); x = 0 and y = 0 are symmetry planes, the bottom slides on
+    z = -5. friction None: bonded; {"lower-upper": mu}: frictional contact."""
+    mesh = stacked_boxes({"lower": ((0, 0, -5), (10, 10, 0)), "upper": ((0, 0, 0), (10, 10, 10))}, h)
+    mats = {"lower": fem.NeoHooke(mu=10, bulk=50), "upper": fem.NeoHooke(mu=1, bulk=5)}
+    m = build_model(mesh, mats, friction, settings)
+    u = m.field[0]
+    bnd = {
+        "x0": fem.Boundary(u, fx=0, skip=(0, 1, 1)),
+        "y0": fem.Boundary(u, fy=0, skip=(1, 0, 1)),
+        "bottom": fem.Boundary(u, fz=-5, skip=(1, 1, 0)),
+        "top": fem.Boundary(u, fz=10, skip=(1, 1, 0)),
+    }
+    return m, solve_steps(m, bnd, lambda t: bnd["top"].update(-push * t), list(factors), initial_step=0.5)
