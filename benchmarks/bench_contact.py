@@ -6,7 +6,7 @@ split interface (ipctk barrier + lagged friction, dhat = 0.01 mm). pytest-benchm
 contact/bonded ratio of the medians and the Newton iterations are stored in extra_info.
 
 The needle model (bonded vs the paper's interfaces) is timed by
-`needletissue.fem.contact_needle.compare_interfaces` (wall times and their ratio in its result).
+`needletissue.models.contact.compare_interfaces` (wall times and their ratio in its result).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from needletissue.fem.contact import ContactSettings
-from needletissue.fem.contact_verify import pressed_blocks
+from needletissue.models.contact_verify import pressed_blocks
 
 _MEDIANS: dict[str, float] = {}
 

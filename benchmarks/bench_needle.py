@@ -25,7 +25,7 @@ def _mesh_only(geometry):
 
 @pytest.mark.parametrize("needles", [2, 1])
 def test_bench_needle_model(benchmark, needles):
-    from needletissue.fem.needle import NeedleModelConfig, run_needle_model
+    from needletissue.models.needle import NeedleModelConfig, run_needle_model
     from needletissue.geometry.needle import NeedleGeometry
 
     cfg = NeedleModelConfig(geometry=NeedleGeometry(needles=needles))

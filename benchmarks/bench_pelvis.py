@@ -31,7 +31,7 @@ def test_bench_mesh_default(benchmark, site_and_volume):
 
 
 def test_bench_solve_coarse(benchmark):
-    from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+    from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
     cfg = PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[100.0, 200.0, 300.0], figures=False)
     res = benchmark.pedantic(run_pelvis_model, args=(cfg,), rounds=1, iterations=1)

@@ -1,6 +1,6 @@
 """Paper-scale needle model: linear tets, 1 mm needles, 3 mm elsewhere, ~1.33 M tets, 300 N."""
 import json, time
-from needletissue.fem.needle import NeedleModelConfig, run_needle_model, with_geometry
+from needletissue.models.needle import NeedleModelConfig, run_needle_model, with_geometry
 
 if __name__ == "__main__":
     cfg = with_geometry(NeedleModelConfig(forces=(300.0,), order=1, formulation="mixed", ritz=True, progress=True),

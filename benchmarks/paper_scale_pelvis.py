@@ -18,7 +18,7 @@ import json
 import resource
 import time
 
-from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -8,8 +8,8 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from needletissue.fem.contact_needle import compare_interfaces
-from needletissue.fem.needle import NeedleModelConfig, with_geometry
+from needletissue.models.contact import compare_interfaces
+from needletissue.models.needle import NeedleModelConfig, with_geometry
 from needletissue.runinfo import write_run_files
 
 out = Path(sys.argv[1] if len(sys.argv) > 1 else "results/contact_needle")

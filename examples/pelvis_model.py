@@ -7,7 +7,7 @@ Writes VTU files, figures, pelvis_results.json and pelvis_comparison.md to the f
 
 import sys
 
-from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
 if __name__ == "__main__":
     out = sys.argv[1] if len(sys.argv) > 1 else "results/pelvis"

@@ -10,8 +10,8 @@ import pytest
 
 from needletissue.errors import ConvergenceError, InputError
 from needletissue.fem.contact import ContactSettings, resolve_interfaces
-from needletissue.fem.contact_mesh import split_interfaces
-from needletissue.fem.contact_verify import build_model, pressed_blocks, solve_steps, stacked_boxes
+from needletissue.fem.contact.mesh import split_interfaces
+from needletissue.models.contact_verify import build_model, pressed_blocks, solve_steps, stacked_boxes
 
 DHAT = 0.1  # the default (ContactSettings.dhat)
 EPS_V = 1e-3
@@ -202,34 +202,8 @@ def test_split_quadratic_mesh_keeps_midside_nodes_with_their_side():
     assert np.allclose(split.points[itf.nodes_b], mesh.points[itf.nodes_a])
 
 
-def test_needle_contact_rejects_bad_options_before_meshing():
-    from needletissue.fem.contact_needle import NeedleContact
-
-    with pytest.raises(InputError, match="interfaces"):
-        NeedleContact("glued")
-    with pytest.raises(InputError, match="needle-muscle"):
-        NeedleContact("paper", {"needle-muscle": -0.3})
-    assert set(NeedleContact("paper").hooks()) == {"mesh_hook", "items", "report"}
-
-
-@pytest.mark.parametrize("option, value, named", [
-    ("--contact-dhat", "0", "--contact-dhat"), ("--contact-eps-v", "-1", "--contact-eps-v"),
-    ("--friction", "needle-muscle=-0.3", "--friction needle-muscle"), ("--friction", "lung-needle=0.3", "'lung-needle'")])
-def test_bad_contact_cli_options_are_one_line_exit_2(option, value, named):
-    """Checked before the solve (the last one, a pair absent from the mesh, after meshing: ~10 s)."""
-    import subprocess
-    import sys
-
-    args = ["fe", "needle", "--needles", "1", "--needle-mesh-size", "4", "--mesh-size", "12",
-            "--far-mesh-size", "12", "--interfaces", "paper", option, value]
-    p = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", *args],
-                       capture_output=True, text=True, timeout=300)
-    assert p.returncode == 2, p.stderr
-    assert named in p.stderr and "Traceback" not in p.stderr
-
-
 def test_material_groups_name_anatomical_regions():
-    from needletissue.fem.contact_mesh import group_regions, material_groups
+    from needletissue.fem.contact.mesh import group_regions, material_groups
 
     mats = {"gluteus_medius": "muscle", "iliopsoas": "muscle", "hip_cortical": "cortical_bone",
             "hip_cancellous": "cancellous_bone", "needle_1": "needle", "adipose": "adipose"}
@@ -243,23 +217,3 @@ def test_material_groups_name_anatomical_regions():
     assert resolve_interfaces(box, "paper", groups=groups) == {"muscle-bone": 0.3}
     split, (itf,) = split_interfaces(box, ["muscle-bone"], groups)
     assert itf.regions_a == ("iliopsoas",) and itf.regions_b == ("hip_cortical",)
-
-
-@pytest.mark.slow
-def test_needle_model_with_paper_interfaces_is_more_compliant_and_opens_a_gap():
-    """Coarse one-needle model at 30 N, bonded vs the paper's frictional interfaces on the same mesh:
-    contact lets the tissue slide and separate, so the needle deflects more than bonded; the muscle
-    opens behind the needle (gap > 0); the barrier keeps interpenetration below dhat; the supports
-    carry the applied force (equilibrium with the contact item's forces inside the model)."""
-    from needletissue.fem.contact_needle import compare_interfaces
-    from needletissue.fem.needle import NeedleModelConfig, with_geometry
-
-    cfg = with_geometry(NeedleModelConfig(forces=(30.0,), ritz=False), needles=1, needle_mesh_size=3.0,
-                        mesh_size=8.0)
-    res = compare_interfaces(cfg)
-    (row,) = res.rows
-    assert set(res.interfaces) == {"needle-muscle", "muscle-bone", "bone-needle"}
-    assert row.needle_max_contact_mm > row.needle_max_bonded_mm
-    assert row.max_gap_opening_mm["needle-muscle"] > 0.05
-    assert row.max_interpenetration_mm < res.settings["needle-muscle"]["dhat_mm"]
-    assert res.cost_ratio > 1

@@ -55,7 +55,7 @@ def register(app: typer.Typer, groups) -> None:
         """Solve the needle-tissue-bone model at each force; report needle, clamp and tissue deformation
         and the Rayleigh-Ritz comparison. Units: mm, N, MPa."""
         from needletissue.errors import InputError
-        from needletissue.fem.needle import NeedleModelConfig, run_needle_model
+        from needletissue.models.needle import NeedleModelConfig, run_needle_model
 
         try:
             dvec = tuple(float(x) for x in direction.split(","))
@@ -71,7 +71,7 @@ def register(app: typer.Typer, groups) -> None:
         hooks = {}
         if interfaces != "bonded" or friction:
             from needletissue.fem.contact import ContactSettings, parse_friction
-            from needletissue.fem.contact_needle import NeedleContact
+            from needletissue.models.contact import NeedleContact
 
             from needletissue.errors import check_number
 

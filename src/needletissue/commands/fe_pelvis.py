@@ -45,7 +45,7 @@ def register(app, groups) -> None:
         import json
 
         from needletissue.errors import InputError
-        from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+        from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
         if ssm and (ct is not None or labels is not None):
             raise InputError("--ssm", "give either --ssm or --ct/--labels, not both")

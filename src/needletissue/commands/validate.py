@@ -36,7 +36,7 @@ def traction(
     from rich.console import Console
     from rich.table import Table
 
-    from needletissue.fem import traction as tr
+    from needletissue.models import traction as tr
     from needletissue.runinfo import to_jsonable, write_run_files
 
     if material not in ("muscle", "adipose"):

@@ -710,7 +710,7 @@ def curve_needles(qpoints: np.ndarray, qcells: np.ndarray, regions: dict, needle
     the axis, edge on a boundary face of the needle region) is moved radially onto the cylinder.
     Returns a new points array; the tissue and bone elements sharing the nodes follow the curved face.
     """
-    from needletissue.fem.mesh import TET10_EDGES
+    from needletissue.cells import TET10_EDGES
 
     pts = np.array(qpoints, float)
     face_edges = np.array([[0, 1], [1, 2], [0, 2]])

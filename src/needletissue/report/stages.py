@@ -52,11 +52,11 @@ def materials_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
 
 @dataclass
 class TractionValidation:
-    results: list[dict]  # fem.traction.TractionResult.to_dict per tissue
+    results: list[dict]  # models.traction.TractionResult.to_dict per tissue
 
 
 def traction_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
-    from needletissue.fem import traction
+    from needletissue.models import traction
 
     d = ctx.stage_dir("traction")
     results, figs, comps = [], [], []
@@ -163,12 +163,12 @@ def plot_region_deformation(results: list[dict], path, title: str, dpi: int = 11
 
 @dataclass
 class NeedleFE:
-    result: dict  # fem.needle.NeedleModelResult.to_dict (the `fe needle --json` contract)
+    result: dict  # models.needle.NeedleModelResult.to_dict (the `fe needle --json` contract)
 
 
 def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
-    from needletissue.fem.needle import NeedleModelConfig, run_needle_model
-    from needletissue.fem.needle_plot import plot_deflection_curves
+    from needletissue.models.needle import NeedleModelConfig, run_needle_model
+    from needletissue.models.needle.plot import plot_deflection_curves
     from needletissue.geometry.needle import NeedleGeometry
     from needletissue.report.render import plot_theory_vs_fe, try_render
 
@@ -227,11 +227,11 @@ def _pelvis_enabled(cfg: ReproduceConfig, ctx: StageContext):
 
 @dataclass
 class PelvisFE:
-    result: dict  # fem.pelvis.PelvisResult.to_dict (the `fe pelvis --json` contract)
+    result: dict  # models.pelvis.PelvisResult.to_dict (the `fe pelvis --json` contract)
 
 
 def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
-    from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+    from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
     c = cfg.pelvis
     d = ctx.stage_dir("pelvis")

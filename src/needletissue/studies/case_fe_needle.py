@@ -1,4 +1,4 @@
-"""Study cases on the 3D needle-tissue-bone FE model (needletissue.fem.needle): one case = one mesh and
+"""Study cases on the 3D needle-tissue-bone FE model (needletissue.models.needle): one case = one mesh and
 one solve, one Dask task (chunk size 1 by default).
 
 Parameters (units in the names): force_N (> 0; the direction is the model's default, lateral),
@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from needletissue.errors import InputError
-from needletissue.fem.needle import NeedleModelConfig, run_needle_model
+from needletissue.models.needle import NeedleModelConfig, run_needle_model
 from needletissue.geometry.needle import NeedleGeometry
 from needletissue.studies.models import CaseModel, ParamInfo, register
 

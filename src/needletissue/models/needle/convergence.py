@@ -36,7 +36,7 @@ def richardson(coarse: float, medium: float, fine: float, ratio: float) -> Richa
 def run_convergence(config, ratio: float = 1.4, levels: tuple[float, ...] = (1.0, 0.0, -1.0), progress=False):
     """Run `config` with all element sizes scaled by ratio**level (level 1 = coarser); returns the
     per-level summaries and the Richardson fit of the max needle deformation at the largest force."""
-    from needletissue.fem.needle import run_needle_model
+    from needletissue.models.needle import run_needle_model
 
     rows = []
     for lev in levels:

@@ -1,6 +1,6 @@
 """Verification models for frictional contact: blocks on blocks, built and solved with FElupe.
 
-Used by tests/fem/test_contact*.py and benchmarks/bench_contact.py. ``stacked_boxes`` returns a
+Used by tests/fem/test_contact.py, tests/models/test_needle_contact.py and benchmarks/bench_contact.py. ``stacked_boxes`` returns a
 TaggedMesh, so ``split_interfaces`` treats it like a model mesh.
 ``solve_steps`` is a small load-stepping Newton driver with line search and cut-back (the same
 behaviour ``needletissue.fem.solve`` has), so the contact item is verified without the full FE core.
@@ -17,7 +17,7 @@ from felupe.tools._newton import fun_items
 
 from needletissue.errors import ConvergenceError
 from needletissue.fem.contact import ContactSettings, ContactSurface, FrictionalContact
-from needletissue.fem.contact_mesh import split_interfaces
+from needletissue.fem.contact.mesh import split_interfaces
 from needletissue.fem.mesh import TaggedMesh
 
 

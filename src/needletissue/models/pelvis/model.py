@@ -294,7 +294,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
     contact = None
     if config.interfaces != "bonded" or config.friction:
         from needletissue.fem.contact import ContactSettings
-        from needletissue.fem.contact_needle import NeedleContact
+        from needletissue.models.contact import NeedleContact
 
         contact = NeedleContact(config.interfaces, dict(config.friction),
                                 ContactSettings(**{k: v for k, v in (("dhat", config.contact_dhat),
@@ -389,7 +389,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         out_dir.mkdir(parents=True, exist_ok=True)
         meshio.write(out_dir / "pelvis_mesh.vtu", pm_m)
         res.wall_time_s = time.perf_counter() - t0
-        from needletissue.fem.pelvis_report import comparison_markdown, render_in_subprocess
+        from needletissue.models.pelvis.report import comparison_markdown, render_in_subprocess
         from needletissue.runinfo import write_atomic
 
         write_atomic(out_dir / "pelvis_comparison.md", comparison_markdown(res))

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 
 
 from needletissue.fem.contact import ContactSettings, ContactSurface, FrictionalContact, resolve_interfaces
-from needletissue.fem.contact_mesh import split_interfaces
+from needletissue.fem.contact.mesh import split_interfaces
 
 
 @dataclass
@@ -78,12 +78,12 @@ class NeedleContact:
                                         [r.fe.displacement for r in result.results])}
 
     def _materials(self) -> dict[str, str]:
-        from needletissue.fem.needle import MATERIALS
+        from needletissue.models.needle.model import MATERIALS
 
         return MATERIALS if self.materials is None else self.materials
 
     def prepare(self, mesh):
-        from needletissue.fem.contact_mesh import material_groups
+        from needletissue.fem.contact.mesh import material_groups
 
         groups = material_groups(self._materials()) if self.materials is not None else None
         self.friction = resolve_interfaces(mesh, self.interfaces, self.overrides, groups)
@@ -144,7 +144,7 @@ TISSUE = ("muscle", "adipose", "cortical_bone", "cancellous_bone")
 def compare_interfaces(config=None, interfaces: str = "paper", overrides=None,
                        settings: ContactSettings | None = None) -> ComparisonResult:
     """Run the needle model bonded and with contact on the same mesh (see module docstring)."""
-    from needletissue.fem.needle import NeedleModelConfig, run_needle_model
+    from needletissue.models.needle import NeedleModelConfig, run_needle_model
 
     cfg = config or NeedleModelConfig()
     t0 = time.perf_counter()

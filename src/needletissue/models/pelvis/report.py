@@ -66,7 +66,7 @@ def _plots(res, out_dir):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from needletissue.fem.pelvis import PAPER
+    from needletissue.models.pelvis import PAPER
 
     F = [r.force_N for r in res.results]
     fig, ax = plt.subplots(figsize=(6, 4.5))
@@ -125,7 +125,7 @@ def render_in_subprocess(out_dir) -> dict:
     import subprocess
     import sys
 
-    code = ("import sys; from needletissue.fem.pelvis_report import figures_from_files; "
+    code = ("import sys; from needletissue.models.pelvis.report import figures_from_files; "
             "print('\\n'.join(figures_from_files(sys.argv[1])))")
     env = dict(os.environ, PYVISTA_OFF_SCREEN="true", MPLBACKEND="Agg")
     r = subprocess.run([sys.executable, "-c", code, str(out_dir)], capture_output=True, text=True, env=env)

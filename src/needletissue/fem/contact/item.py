@@ -8,7 +8,7 @@ mapped from the collision-surface vertices to the global displacement dofs.
 
 Modelling choices (details and the reasons in docs/contact.md):
 
-* Interfaces come from a conforming mesh split by ``contact_mesh.split_interfaces``; the two sides
+* Interfaces come from a conforming mesh split by ``needletissue.fem.contact.mesh.split_interfaces``; the two sides
   start coincident. The barrier needs a positive distance, so side b's collision vertices are shifted
   by ``gap = 0.9 dhat`` along side a's outward normal: zero physical gap is (almost) the barrier's
   activation distance, and the physical interpenetration is bounded by ``gap < dhat`` (the barrier
@@ -36,7 +36,7 @@ from felupe.mechanics import Assemble, Results
 from scipy.sparse import coo_matrix, csr_matrix
 
 from needletissue.errors import InputError, check_number
-from needletissue.fem.contact_mesh import SplitInterface, triangles
+from needletissue.fem.contact.mesh import SplitInterface, triangles
 
 PAPER_INTERFACES = {"needle-muscle": 0.3, "muscle-bone": 0.3, "bone-needle": 0.9}
 """Friction coefficients of the paper (section 2.3): every other interface is bonded."""
@@ -133,9 +133,9 @@ def resolve_interfaces(mesh, mode: str = "paper", overrides: dict[str, float] | 
     mode "bonded": none (unless overridden); "paper": those of PAPER_INTERFACES present in the mesh
     (groups with regions that share faces). overrides {"needle-muscle": 0.3, ...} add or change a pair;
     a pair not present in the mesh or a coefficient < 0 raises InputError. ``groups``: group -> regions
-    (``contact_mesh.material_groups``) for meshes with anatomical region names.
+    (``needletissue.fem.contact.mesh.material_groups``) for meshes with anatomical region names.
     """
-    from needletissue.fem.contact_mesh import group_regions, interface_faces, parse_interface_name
+    from needletissue.fem.contact.mesh import group_regions, interface_faces, parse_interface_name
 
     if mode not in ("bonded", "paper"):
         raise InputError("interfaces", f"must be 'bonded' or 'paper', got {mode!r}")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from needletissue.fem import traction as tr
+from needletissue.models import traction as tr
 
 
 def test_theory_matches_independent_closed_forms():

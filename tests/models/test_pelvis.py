@@ -80,7 +80,7 @@ def test_thickness_along_needles_is_the_walked_layers(vol, site):
 def test_thickness_agrees_with_the_img_segmentation(vol, site):
     """Independent check: the img branch's segmentation and path walk (LPS frame, its own tissue
     rules) find the bone where our needle enters it and about the same soft-tissue thickness."""
-    from needletissue.fem.pelvis import PelvisConfig, thickness_crosscheck
+    from needletissue.models.pelvis import PelvisConfig, thickness_crosscheck
 
     class _PM:
         pass
@@ -158,7 +158,7 @@ def test_gripper_is_the_two_clamp_side_faces(coarse):
 
 
 def test_bad_inputs_name_the_field():
-    from needletissue.fem.pelvis import PelvisConfig
+    from needletissue.models.pelvis import PelvisConfig
 
     with pytest.raises(InputError, match="force"):
         PelvisConfig(forces=[-5.0])
@@ -184,7 +184,7 @@ def test_bad_inputs_name_the_field():
 def test_coarse_solve_equilibrium_and_monotone(tmp_path):
     """A coarse quadratic run: the fixed supports carry the applied force (global equilibrium), the
     deformation grows with the force, and the needle ends move more than the tissue."""
-    from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+    from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
     cfg = PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[50.0, 100.0],
                        out=str(tmp_path), figures=False, crosscheck_thickness=False)
@@ -215,7 +215,7 @@ def test_cli_rejects_bad_input(args, field):
 def test_linear_order_coarse_solve_equilibrium():
     """order=1 (the paper-scale run's element type) on a coarse mesh (~17 k tets, ~20 s): the solve uses
     the linear mesh itself (no midside nodes) and the supports carry the applied force."""
-    from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+    from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
     res = run_pelvis_model(PelvisConfig(order=1, mesh_size=6.0, needle_size=1.5, far_size=18.0, forces=[300.0],
                                         figures=False, crosscheck_thickness=False))
@@ -268,7 +268,7 @@ def test_needle_interfaces_in_contact_are_more_compliant(tmp_path):
     """Coarse anatomical model at 20 N with needle-muscle (0.3) and bone-needle (0.9) in frictional
     contact: the supports still carry the force, the needles move more than with bonded interfaces,
     and the barrier keeps the interpenetration below dhat (results' "contact" field)."""
-    from needletissue.fem.pelvis import PelvisConfig, run_pelvis_model
+    from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
     kw = dict(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[20.0], figures=False,
               crosscheck_thickness=False)

@@ -255,7 +255,7 @@ def write_outputs(result: NeedleModelResult, out_dir: Path) -> None:
         name = f"needle_{r.force_N:g}N.vtu"
         r.fe.write_vtu(out_dir / name)
         files[f"vtu_{r.force_N:g}N"] = name
-    from needletissue.fem.needle_plot import plot_deflection_curves, plot_deformed
+    from needletissue.models.needle.plot import plot_deflection_curves, plot_deformed
 
     files["figure_deformed"] = plot_deformed(result, out_dir / "needle_deformed.png").name
     files["figure_deflection"] = plot_deflection_curves(result, out_dir / "needle_deflection.png").name

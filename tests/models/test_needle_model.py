@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from needletissue.cli import app
-from needletissue.fem.needle import NeedleModelConfig, run_needle_model
+from needletissue.models.needle import NeedleModelConfig, run_needle_model
 from needletissue.geometry.needle import NeedleGeometry
 from needletissue.materials import get
 

@@ -3,7 +3,7 @@
 import pytest
 
 from needletissue.errors import InputError
-from needletissue.fem.needle_convergence import richardson
+from needletissue.models.needle.convergence import richardson
 
 
 @pytest.mark.parametrize("p, r", [(2.0, 2.0), (1.3, 1.4), (3.0, 1.5)])
