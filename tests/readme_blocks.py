@@ -1,0 +1,114 @@
+"""The README's code blocks as data: parse them, run their console commands, compare or update.
+
+`python tests/readme_blocks.py --update` reruns every `$ needletissue ...` console block and writes the
+real output back into README.md (timings are the only thing the comparison forgives).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+FENCE = re.compile(r"^```(\w*)\n(.*?)^```\n", re.S | re.M)
+# Wall times and elapsed clocks change run to run; everything else must match.
+# Progress bars take the width the terminal leaves them.
+TIMING = [(re.compile(r"\b\d+:\d\d:\d\d\b"), "<clock>"), (re.compile(r"\b\d+(\.\d+)? s\b"), "<t> s"),
+          (re.compile("\u2501+"), "\u2501")]
+
+
+@dataclass(frozen=True)
+class Block:
+    line: int       # line of the opening fence, 1-based
+    lang: str
+    text: str
+    start: int      # character offsets of the body in README.md
+    end: int
+
+    @property
+    def id(self) -> str:
+        return f"README.md:{self.line}:{self.lang or 'text'}"
+
+
+def blocks(text: str | None = None) -> list[Block]:
+    text = README.read_text(encoding="utf-8") if text is None else text
+    out = []
+    for m in FENCE.finditer(text):
+        out.append(Block(text.count("\n", 0, m.start()) + 1, m.group(1), m.group(2), m.start(2), m.end(2)))
+    return out
+
+
+def console_commands(block: Block) -> list[tuple[str, list[str]]]:
+    """(command, expected output lines) for each `$ ` prompt of a console block."""
+    cmds: list[tuple[str, list[str]]] = []
+    for line in block.text.splitlines():
+        if line.startswith("$ "):
+            cmds.append((line[2:], []))
+        elif cmds:
+            cmds[-1][1].append(line)
+    for _, lines in cmds:
+        while lines and not lines[-1].strip():
+            lines.pop()
+    return cmds
+
+
+def environment() -> dict:
+    env = dict(os.environ, COLUMNS="120", NO_COLOR="1", TERM="dumb", PYTHONWARNINGS="ignore")
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
+    return env
+
+
+def run_console(command: str, cwd: Path) -> list[str]:
+    """Run a README console command as a user would (shell, the venv's needletissue), in cwd, where
+    `examples` points at the repository's examples folder. Returns stdout and stderr lines."""
+    examples = cwd / "examples"
+    if not examples.exists():
+        examples.symlink_to(ROOT / "examples")
+    p = subprocess.run(command, shell=True, cwd=cwd, env=environment(), capture_output=True, text=True,
+                       timeout=900)
+    if p.returncode != 0:
+        raise AssertionError(f"`{command}` exited {p.returncode}:\n{p.stderr[-3000:]}")
+    lines = (p.stdout + p.stderr).splitlines()
+    return [ln.rstrip() for ln in lines if ln.strip()]
+
+
+def normalise(lines: list[str]) -> list[str]:
+    out = []
+    for ln in lines:
+        for pattern, repl in TIMING:
+            ln = pattern.sub(repl, ln)
+        out.append(ln.rstrip())
+    return out
+
+
+def matches(expected: list[str], actual: list[str]) -> bool:
+    """Line by line after normalising timings; a line `...` stands for any number of lines."""
+    exp, act = normalise([e for e in expected if e.strip()]), normalise(actual)
+    pattern = "".join(r"(?:[^\n]*\n)*?" if e == "..." else re.escape(e) + "\n" for e in exp)
+    return re.fullmatch(pattern, "".join(a + "\n" for a in act)) is not None
+
+
+def update(cwd: Path) -> None:
+    text = README.read_text(encoding="utf-8")
+    for b in reversed(blocks(text)):
+        if b.lang != "console" or "$ needletissue" not in b.text:
+            continue
+        body = []
+        for cmd, _ in console_commands(b):
+            body += [f"$ {cmd}", *run_console(cmd, cwd), ""]
+        text = text[:b.start] + "\n".join(body).rstrip() + "\n" + text[b.end:]
+    README.write_text(text, encoding="utf-8")
+
+
+if __name__ == "__main__":
+    import tempfile
+
+    if sys.argv[1:] != ["--update"]:
+        sys.exit("usage: python tests/readme_blocks.py --update")
+    with tempfile.TemporaryDirectory() as tmp:
+        update(Path(tmp))

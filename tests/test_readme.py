@@ -1,0 +1,136 @@
+"""Every code block in README.md runs: Python blocks execute (numbers in their comments are checked to
+the printed digits), console blocks rerun and print what the README shows, command synopses name only
+options that exist, and the two set-up commands are the Makefile's. After a change that moves a
+console output, `python tests/readme_blocks.py --update` rewrites those blocks from a real run."""
+
+from __future__ import annotations
+
+import ast
+import re
+import subprocess
+import sys
+
+import pytest
+
+from readme_blocks import ROOT, blocks, console_commands, environment, matches, run_console
+
+BLOCKS = blocks()
+HEAVY = ("run_pelvis_model(", "run_needle_model(", "solve(model")
+NUMBERS = re.compile(r"#\s*([-+]?\d[\d.eE+-]*(?:\s*,\s*[-+]?\d[\d.eE+-]*)*)\s*(?:$|[,;(])")
+
+
+def _python_params():
+    for b in BLOCKS:
+        if b.lang == "python":
+            marks = [pytest.mark.slow] if any(h in b.text for h in HEAVY) else []
+            yield pytest.param(b, id=b.id, marks=marks)
+
+
+def _printed_tolerance(token: str) -> float:
+    mantissa = token.lower().split("e")[0]
+    decimals = len(mantissa.split(".")[1]) if "." in mantissa else 0
+    exponent = int(token.lower().split("e")[1]) if "e" in token.lower() else 0
+    return 0.5 * 10.0 ** (exponent - decimals)
+
+
+@pytest.mark.parametrize("block", list(_python_params()))
+def test_python_block_runs_and_its_numbers_hold(block, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    lines = block.text.splitlines()
+    namespace: dict = {"__name__": "__readme__"}
+    checked = 0
+    for stmt in ast.parse(block.text).body:
+        code = compile(ast.Module([stmt], []), block.id, "exec")
+        if not isinstance(stmt, ast.Expr):
+            exec(code, namespace)
+            continue
+        value = eval(compile(ast.Expression(stmt.value), block.id, "eval"), namespace)
+        m = NUMBERS.search(lines[stmt.end_lineno - 1])
+        if m:
+            printed = [t.strip() for t in m.group(1).split(",")]
+            values = value if isinstance(value, tuple) else (value,)
+            assert len(values) == len(printed), f"{block.id}: {lines[stmt.end_lineno - 1]!r}"
+            for v, t in zip(values, printed):
+                assert abs(float(v) - float(t)) <= _printed_tolerance(t) * (1 + 1e-9), (
+                    f"{block.id}: `{ast.unparse(stmt)}` gives {float(v)!r}, the README prints {t}")
+                checked += 1
+    assert checked or not any(NUMBERS.search(ln) for ln in lines)
+
+
+def _console_params():
+    for b in BLOCKS:
+        if b.lang == "console":
+            for cmd, expected in console_commands(b):
+                if cmd.startswith("needletissue "):
+                    marks = [pytest.mark.slow] if " study " in f" {cmd} " else []
+                    yield pytest.param(cmd, expected, id=f"{b.id}:{cmd.split(' --')[0]}", marks=marks)
+
+
+@pytest.mark.parametrize("command, expected", list(_console_params()))
+def test_console_block_prints_what_the_readme_shows(command, expected, tmp_path):
+    actual = run_console(command, tmp_path)
+    assert matches(expected, actual), (
+        "README output differs from a real run (update with `python tests/readme_blocks.py --update`):\n"
+        + "\n".join(actual))
+
+
+def test_matching_forgives_timings_and_ellipses_only():
+    assert matches(["done in 20.5 s 0:00:11", "a"], ["done in 3.1 s 0:01:02", "a"])
+    assert matches(["x", "...", "y"], ["x", "1", "2", "y"]) and matches(["x", "...", "y"], ["x", "y"])
+    assert not matches(["tip 5.8883 mm"], ["tip 5.8884 mm"])
+    assert not matches(["a", "b"], ["a", "b", "c"])
+
+
+def _synopses():
+    """(command words, options) of every `needletissue ...` line of the bash/plain blocks."""
+    out = []
+    for b in BLOCKS:
+        if b.lang not in ("bash", ""):
+            continue
+        logical: list[str] = []
+        for line in b.text.splitlines():
+            if logical and (line.startswith((" ", "\t")) or logical[-1].endswith("\\")):
+                logical[-1] = logical[-1].rstrip("\\") + " " + line.strip()
+            else:
+                logical.append(line.strip())
+        for line in logical:
+            if not line.startswith("needletissue "):
+                continue
+            words = []
+            for w in line.split()[1:]:
+                if not re.fullmatch(r"[a-z][a-z_]*", w):
+                    break
+                words.append(w)
+            out.append(pytest.param(words, sorted(set(re.findall(r"--[a-z][a-z0-9-]*", line))),
+                                    id=f"{b.id}:{' '.join(words)}"))
+    return out
+
+
+@pytest.mark.parametrize("words, options", _synopses())
+def test_synopsis_names_only_real_options(words, options):
+    p = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", *words, "--help"],
+                       capture_output=True, text=True, env=dict(environment(), COLUMNS="200"), timeout=120)
+    assert p.returncode == 0, p.stderr
+    missing = [o for o in options if not re.search(rf"{re.escape(o)}(?![a-z0-9-])", p.stdout)]
+    assert not missing, f"`needletissue {' '.join(words)} --help` has no {missing}"
+
+
+def test_the_two_setup_commands_are_the_makefiles():
+    (setup,) = [b for b in BLOCKS if b.lang == "bash" and b.text.startswith("make demo")]
+    makefile = (ROOT / "Makefile").read_text(encoding="utf-8")
+    for line in setup.text.splitlines():
+        target, _, comment = line.partition("#")
+        target = target.split()[1]
+        assert re.search(rf"^{target}:", makefile, re.M), target
+        said = re.search(r"`([^`]+)`", comment)
+        if said:  # the command the comment names is the recipe's
+            recipe = re.search(rf"^{target}:.*\n((?:\t.*\n)+)", makefile, re.M).group(1)
+            assert said.group(1) in recipe.replace("$(BIN)/", ""), (target, said.group(1))
+
+
+def test_the_demo_block_lists_the_pipeline_stages_in_order():
+    from needletissue.report.stages import stage_list
+
+    (demo,) = [b for b in BLOCKS if b.lang == "console" and b.text.startswith("$ make demo")]
+    shown = [ln[2:].split(" ok ")[0].strip() for ln in demo.text.splitlines() if ln.startswith("• ")]
+    assert shown == [s.title for s in stage_list()]
