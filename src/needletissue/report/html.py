@@ -12,13 +12,13 @@ from needletissue.runinfo import to_jsonable, versions, write_atomic
 
 _CSS = """
 body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}
-table{border-collapse:collapse;margin:1em 0;font-size:0.92em}
+table{border-collapse:collapse;margin:1em 0;font-size:0.92em;display:block;max-width:100%;overflow-x:auto}
 th,td{border:1px solid #bbb;padding:4px 8px;text-align:right}
 th{background:#eee} td.l,th.l{text-align:left}
 .ok{color:#080}.failed{color:#b00}.skipped{color:#777}
 img{max-width:100%;border:1px solid #ddd;margin:4px 0}
 pre{background:#f6f6f6;padding:8px;overflow-x:auto;font-size:0.85em}
-figure{display:inline-block;margin:6px;vertical-align:top;max-width:520px}
+figure{display:inline-block;margin:6px;vertical-align:top;max-width:min(520px,100%)}
 """
 
 
@@ -54,8 +54,12 @@ def comparison_table(result) -> str:
 
 
 def write_report(run_dir: Path, cfg, result) -> Path:
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>needletissue reproduce</title>"
-             f"<style>{_CSS}</style></head><body>",
+    from needletissue.report.viewer import page_head, viewer_html
+
+    has_views = any(o.result and o.result.views for o in result.outcomes)
+    parts = [f"<!doctype html><html><head><meta charset='utf-8'><meta name='viewport' "
+             f"content='width=device-width, initial-scale=1'><title>needletissue reproduce</title>"
+             f"<style>{_CSS}</style>{page_head() if has_views else ''}</head><body>",
              "<h1>needletissue: reproduction of the reference study</h1>",
              "<p>Units: mm, N, MPa, s. Paper: <i>Study on the interactive deformation of bone needles and "
              "circum-pelvic soft tissue</i>. Every number below was computed by this run; the paper column "
@@ -80,6 +84,7 @@ def write_report(run_dir: Path, cfg, result) -> Path:
         for note in o.result.notes:
             parts.append(f"<p>{html.escape(note)}</p>")
         parts.extend(_img(p) for p in o.result.figures if Path(p).suffix == ".png")
+        parts.extend(viewer_html(scene, title) for title, scene in o.result.views)
         if o.result.files:
             names = ", ".join(html.escape(str(Path(p).relative_to(run_dir))) for p in o.result.files)
             parts.append(f"<p>Files: {names}</p>")

@@ -65,6 +65,7 @@ class StageResult:
     files: list[Path] = field(default_factory=list)
     comparisons: list[Comparison] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    views: list = field(default_factory=list)  # (title, report.viewer.Scene): interactive 3D views
 
 
 @dataclass(frozen=True)

@@ -205,7 +205,14 @@ def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
                                     "theory_fe_difference_300N_mm" if r.force_N == 300.0 else None,
                                     "FE maximum needle deformation minus Ritz tip deflection (paper: "
                                     "18.062 - 17.63)"))
-    return StageResult(NeedleFE(data), figures=figs, files=files, comparisons=comps, notes=notes)
+    from needletissue.report.viewer import model_scene, write_viewer
+
+    scene = model_scene(files, [r.force_N for r in res.results], res.results[-1].fe.region_tags,
+                        res.config.direction, (0.0, 0.0, 1.0), frame_of_reference="model (z along the needles)")
+    title = f"Needle FE model ({c.needles} needle(s)), deformed at each force"
+    files.append(write_viewer(d / "needle_3d.html", scene, title))
+    return StageResult(NeedleFE(data), figures=figs, files=files, comparisons=comps, notes=notes,
+                       views=[(title, scene)])
 
 
 # --- anatomical pelvis model (needs ../shared/data, $NEEDLETISSUE_DATA or --ct) --------------------
@@ -272,7 +279,17 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     for t in res.thickness:
         comps.append(Comparison(f"Soft tissue along {t['needle']}", t["total_mm"], "mm",
                                 "soft_tissue_thickness_mean_mm", "paper: mean of 10 patients (+- 5.43 mm)"))
-    return StageResult(PelvisFE(data), figures=figs, files=files, comparisons=comps, notes=notes)
+    from needletissue.report.viewer import model_scene, write_viewer
+
+    base, top = data["site"]["needle_axes_mm"][0]
+    axis = [t - b for b, t in zip(base, top)]
+    scene = model_scene(files, [r.force_N for r in res.results], data["mesh"]["region_tags"],
+                        data["force_vector_unit"], axis, frame_of_reference="LPS",
+                        hidden=("adipose", "body_wall"))
+    title = "Anatomical model, deformed at each force (adipose and body wall hidden at start)"
+    files.append(write_viewer(d / "pelvis_3d.html", scene, title))
+    return StageResult(PelvisFE(data), figures=figs, files=files, comparisons=comps, notes=notes,
+                       views=[(title, scene)])
 
 
 def stage_list() -> list[Stage]:
