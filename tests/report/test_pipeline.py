@@ -95,3 +95,18 @@ def test_isolated_stage_that_crashes_fails_alone(tmp_path):
     data = json.loads((out / "results.json").read_text(encoding="utf-8"))
     assert data["stages"]["crash"]["status"] == "failed" and "died" in data["stages"]["crash"]["reason"]
     assert data["stages"]["s"]["status"] == "ok" and not res.ok
+
+
+def test_result_folder_and_files_follow_the_umask(tmp_path):
+    import os
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        out = tmp_path / "res"
+        run_reproduce(load_config(), out, [Stage("s", "S", _writes(1.0), _always)], progress=False)
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o755
+    for name in ("report.html", "results.json", "config.toml", "versions.json", MARKER):
+        assert stat.S_IMODE((out / name).stat().st_mode) == 0o644, name

@@ -20,7 +20,7 @@ from typing import Any, Callable
 from needletissue.errors import InputError
 from needletissue.report.config import ReproduceConfig, annotated_toml
 from needletissue.report.paper import PAPER
-from needletissue.runinfo import to_jsonable, write_atomic, write_json, versions
+from needletissue.runinfo import current_umask, to_jsonable, write_atomic, write_json, versions
 
 MARKER = ".needletissue-reproduce"
 
@@ -147,9 +147,7 @@ def run_reproduce(cfg: ReproduceConfig, out: str | Path, stages: list[Stage], *,
     _check_out(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the result folder should not be
+    os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes it private; the result folder should not be
     t0 = time.perf_counter()
     outcomes: list[StageOutcome] = []
     try:
