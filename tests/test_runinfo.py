@@ -27,3 +27,21 @@ def test_atomic_files_and_dirs_follow_the_umask(tmp_path, umask, mask):
     assert stat.S_IMODE(j.stat().st_mode) == 0o666 & ~mask
     assert stat.S_IMODE(d.stat().st_mode) == 0o777 & ~mask
     assert stat.S_IMODE(f.parent.stat().st_mode) == 0o777 & ~mask
+
+
+def test_paths_inside_the_folder_are_written_relative(tmp_path):
+    import json
+
+    import tomllib
+
+    from needletissue.runinfo import relocate, write_run_files
+
+    out = tmp_path / "run"
+    inside, outside = str(out / "a" / "x.vtu"), "/data/ct.nii.gz"
+    assert relocate({"f": [inside, str(out)], "g": outside, "n": 1}, out) == {"f": ["a/x.vtu", "."], "g": outside,
+                                                                              "n": 1}
+    write_run_files(out, {"out": str(out), "ct": outside}, {"vtu": inside, "figures": {"files": [inside]}})
+    text = (out / "results.json").read_text(encoding="utf-8") + (out / "config.toml").read_text(encoding="utf-8")
+    assert str(tmp_path) not in text
+    assert json.loads((out / "results.json").read_text(encoding="utf-8"))["vtu"] == "a/x.vtu"
+    assert tomllib.loads((out / "config.toml").read_text(encoding="utf-8"))["ct"] == outside

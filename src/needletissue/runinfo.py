@@ -118,16 +118,39 @@ def save_figure(fig, path: str | Path, dpi: int = 150) -> Path:
     return write_atomic(path, buf.getvalue())
 
 
+def relocate(obj, root: str | Path):
+    """JSON data with every absolute path inside ``root`` made relative to it (POSIX form, "." for
+    root itself), so a result folder can be copied, moved or shared: a path in a file is relative to
+    the folder holding that file. Paths outside ``root`` (inputs such as a CT) stay as they were."""
+    root = Path(os.path.realpath(root))
+
+    def one(v):
+        if isinstance(v, dict):
+            return {k: one(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [one(x) for x in v]
+        if isinstance(v, str) and v.startswith(os.sep) and len(v) < 4096:
+            p = Path(os.path.realpath(v))
+            if p == root or root in p.parents:
+                return p.relative_to(root).as_posix() or "."
+        return v
+
+    return one(to_jsonable(obj))
+
+
 def write_json(path: str | Path, obj) -> Path:
-    return write_atomic(path, json.dumps(to_jsonable(obj), indent=2) + "\n")
+    """JSON, atomically; paths inside the file's folder written relative to it (relocatable)."""
+    path = Path(path)
+    return write_atomic(path, json.dumps(relocate(obj, path.parent), indent=2) + "\n")
 
 
 def write_run_files(out_dir: str | Path, config, results) -> None:
-    """The three files every run leaves: resolved config (TOML), versions and results (JSON)."""
+    """The three files every run leaves: resolved config (TOML), versions and results (JSON).
+    Paths inside out_dir are written relative to it (see `relocate`)."""
     import tomli_w
 
     out_dir = Path(out_dir)
-    cfg = to_jsonable(config)
+    cfg = relocate(config, out_dir)
     write_atomic(out_dir / "config.toml", tomli_w.dumps(_drop_none(cfg)))
     write_json(out_dir / "versions.json", versions())
     write_json(out_dir / "results.json", results)

@@ -200,6 +200,21 @@ def test_coarse_solve_equilibrium_and_monotone(tmp_path):
     R = np.sum([np.asarray(v) for v in data["results"][-1]["reactions_N"].values()], axis=0)
     F = 100.0 * np.asarray(data["force_vector_unit"])
     assert np.linalg.norm(R + F) < 0.01 * 100.0, (R, F)
+    # relocatable: no absolute path into the folder; the figures rebuild from a moved copy
+    import shutil
+
+    for name in ("pelvis_results.json", "results.json", "config.toml"):
+        assert str(tmp_path) not in (tmp_path / name).read_text(encoding="utf-8"), name
+    assert data["results"][-1]["vtu"] == "pelvis_100N.vtu"
+    moved = tmp_path.parent / (tmp_path.name + "_moved")
+    shutil.copytree(tmp_path, moved)
+    shutil.rmtree(tmp_path)
+    env = dict(os.environ, PYVISTA_OFF_SCREEN="true", MPLBACKEND="Agg")  # VTK renders in a child process
+    r = subprocess.run([sys.executable, "-c", "import sys; from needletissue.models.pelvis.report import "
+                        "figures_from_files; print(figures_from_files(sys.argv[1]))", str(moved)],
+                       capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stderr
+    assert (moved / "pelvis_needle_vs_force.png").is_file() and (moved / "pelvis_deformation.png").is_file()
 
 
 @pytest.mark.parametrize("args, field", [(["--force", "-1"], "force"), (["--order", "3"], "order"),

@@ -110,3 +110,19 @@ def test_result_folder_and_files_follow_the_umask(tmp_path):
     assert stat.S_IMODE(out.stat().st_mode) == 0o755
     for name in ("report.html", "results.json", "config.toml", "versions.json", MARKER):
         assert stat.S_IMODE((out / name).stat().st_mode) == 0o644, name
+
+
+def test_results_are_relocatable(tmp_path):
+    """No path to the temporary folder (or any absolute path inside the result) survives in the files."""
+    def stage(cfg, ctx):
+        d = ctx.stage_dir("s")
+        (d / "x.vtu").write_text("v")
+        return StageResult({"vtu": str(d / "x.vtu"), "nested": [{"file": str(d / "x.vtu")}]}, files=[d / "x.vtu"])
+
+    out = tmp_path / "res"
+    run_reproduce(load_config(), out, [Stage("s", "S", stage, _always)], progress=False)
+    for f in out.rglob("*"):
+        if f.suffix in (".json", ".toml", ".html"):
+            assert str(tmp_path) not in f.read_text(encoding="utf-8"), f
+    data = json.loads((out / "results.json").read_text(encoding="utf-8"))["stages"]["s"]
+    assert data["result"]["vtu"] == "s/x.vtu" == data["files"][0] and (out / data["result"]["vtu"]).is_file()

@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from needletissue.report.config import annotated_toml
-from needletissue.runinfo import to_jsonable, versions, write_atomic
+from needletissue.runinfo import relocate, versions, write_atomic
 
 _CSS = """
 body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}
@@ -83,7 +83,7 @@ def write_report(run_dir: Path, cfg, result) -> Path:
         if o.result.files:
             names = ", ".join(html.escape(str(Path(p).relative_to(run_dir))) for p in o.result.files)
             parts.append(f"<p>Files: {names}</p>")
-        data = json.dumps(to_jsonable(o.result.data), indent=1)
+        data = json.dumps(relocate(o.result.data, run_dir), indent=1)
         if len(data) < 20000:
             parts.append(f"<details><summary>result data</summary><pre>{html.escape(data)}</pre></details>")
     parts.append(f"<h2>Configuration</h2><pre>{html.escape(annotated_toml(cfg))}</pre>")

@@ -325,7 +325,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
     # the FE reports the larger of the two needles' maxima: compare with the larger Ritz deflection
     ritz_tip = [max(n["max_deflection_mm"][i] for n in ritz["per_needle"]) for i in range(len(config.forces))]
 
-    out_dir = Path(config.out) if config.out else None
+    out_dir = Path(config.out).absolute() if config.out else None  # files store paths relative to it
     loads = []
     gripper_nodes = np.unique(qm.surfaces["gripper"])  # |mean u| over the gripper, as `fe needle`
     for f, r, rt in zip(config.forces, fe, ritz_tip):
@@ -393,7 +393,8 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         from needletissue.runinfo import write_atomic
 
         write_atomic(out_dir / "pelvis_comparison.md", comparison_markdown(res))
-        write_run_files(out_dir, asdict(config), res.to_dict())
+        # `out` is where the files are, not an input: --out chooses it when the config is run again
+        write_run_files(out_dir, {k: v for k, v in asdict(config).items() if k != "out"}, res.to_dict())
         write_json(out_dir / "pelvis_results.json", res.to_dict())
         if config.figures:  # after the results are safe: a VTK crash must not lose them
             res.figures = render_in_subprocess(out_dir)
