@@ -45,3 +45,32 @@ def test_paths_inside_the_folder_are_written_relative(tmp_path):
     assert str(tmp_path) not in text
     assert json.loads((out / "results.json").read_text(encoding="utf-8"))["vtu"] == "a/x.vtu"
     assert tomllib.loads((out / "config.toml").read_text(encoding="utf-8"))["ct"] == outside
+
+
+def test_versions_cover_every_dependency_and_the_run_is_recorded(tmp_path):
+    import json
+    import re
+    import subprocess
+    import tomllib
+    from pathlib import Path
+
+    from needletissue.runinfo import _PACKAGES, write_run_files
+
+    root = Path(__file__).resolve().parents[1]
+    deps = tomllib.loads((root / "pyproject.toml").read_text(encoding="utf-8"))["project"]["dependencies"]
+    norm = lambda n: re.sub(r"[-_.]+", "-", n).lower()  # noqa: E731  (PEP 503 names)
+    listed = {norm(p) for p in _PACKAGES}
+    missing = [d for d in deps if norm(re.split(r"[<>=;\[ ]", d)[0]) not in listed]
+    assert not missing, f"add to runinfo._PACKAGES: {missing}"
+
+    write_run_files(tmp_path, {}, {})
+    v = json.loads((tmp_path / "versions.json").read_text(encoding="utf-8"))
+    import needletissue
+    import numpy
+
+    assert v["needletissue"] == needletissue.__version__ and v["numpy"] == numpy.__version__
+    run = v["run"]
+    assert re.match(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\+00:00$", run["date"]) and run["command"]
+    head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
+    if head.returncode == 0 and Path(needletissue.__file__).resolve().is_relative_to(root):
+        assert run["git_commit"] == head.stdout.strip()

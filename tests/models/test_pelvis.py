@@ -299,3 +299,39 @@ def test_needle_interfaces_in_contact_are_more_compliant(tmp_path):
     R = np.sum([np.asarray(v) for v in data["results"][0]["reactions_N"].values()], axis=0)
     F = 20.0 * np.asarray(data["force_vector_unit"])
     assert np.linalg.norm(R + F) < 0.01 * 20.0, (R, F)
+
+
+def test_written_config_is_accepted_back(tmp_path, monkeypatch):
+    """The config.toml `fe pelvis --out` writes (write_run_files of the PelvisConfig without `out`) is
+    accepted back by `fe pelvis --config`: the same config; command-line options override the file."""
+    from dataclasses import asdict
+
+    from typer.testing import CliRunner
+
+    import needletissue.models.pelvis as pelvis_pkg
+    from needletissue.cli import app
+    from needletissue.models.pelvis import PelvisConfig
+    from needletissue.runinfo import write_run_files
+
+    cfg = PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[50.0, 100.0], side="left",
+                       friction={"needle-muscle": 0.3}, contact_dhat=0.2, figures=False, out=str(tmp_path))
+    write_run_files(tmp_path, {k: v for k, v in asdict(cfg).items() if k != "out"}, {})
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_run(config):
+        seen.append(config)
+        raise Stop
+
+    monkeypatch.setattr(pelvis_pkg, "run_pelvis_model", fake_run)
+    res = CliRunner().invoke(app, ["fe", "pelvis", "--config", str(tmp_path / "config.toml"), "--out", str(tmp_path)])
+    assert isinstance(res.exception, Stop), res.output
+    assert asdict(seen[-1]) == {**asdict(cfg), "progress": True}
+    res = CliRunner().invoke(app, ["fe", "pelvis", "--config", str(tmp_path / "config.toml"), "--mesh-size", "5",
+                                   "--friction", "bone-needle=0.9", "--json"])
+    assert isinstance(res.exception, Stop), res.output
+    got = seen[-1]
+    assert got.mesh_size == 5.0 and got.needle_size == 3.0 and got.side == "left" and got.out is None
+    assert got.friction == {"needle-muscle": 0.3, "bone-needle": 0.9}

@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from needletissue.report.config import annotated_toml
-from needletissue.runinfo import relocate, versions, write_atomic
+from needletissue.runinfo import relocate, version_record, write_atomic
 
 _CSS = """
 body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}
@@ -87,6 +87,6 @@ def write_report(run_dir: Path, cfg, result) -> Path:
         if len(data) < 20000:
             parts.append(f"<details><summary>result data</summary><pre>{html.escape(data)}</pre></details>")
     parts.append(f"<h2>Configuration</h2><pre>{html.escape(annotated_toml(cfg))}</pre>")
-    parts.append(f"<h2>Versions</h2><pre>{html.escape(json.dumps(versions(), indent=1))}</pre>")
+    parts.append(f"<h2>Versions</h2><pre>{html.escape(json.dumps(version_record(), indent=1))}</pre>")
     parts.append("</body></html>")
     return write_atomic(run_dir / "report.html", "\n".join(parts))

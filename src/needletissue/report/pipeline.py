@@ -20,7 +20,7 @@ from typing import Any, Callable
 from needletissue.errors import InputError
 from needletissue.report.config import ReproduceConfig, annotated_toml
 from needletissue.report.paper import PAPER
-from needletissue.runinfo import current_umask, to_jsonable, write_atomic, write_json, versions
+from needletissue.runinfo import current_umask, to_jsonable, version_record, write_atomic, write_json
 
 MARKER = ".needletissue-reproduce"
 
@@ -176,7 +176,7 @@ def run_reproduce(cfg: ReproduceConfig, out: str | Path, stages: list[Stage], *,
                 bar.finish(stage, "ok", f"{dt:.1f} s")
         result = ReproduceResult(out, outcomes, time.perf_counter() - t0)
         write_atomic(tmp / "config.toml", annotated_toml(cfg))
-        write_json(tmp / "versions.json", versions())
+        write_json(tmp / "versions.json", version_record())
         write_report(tmp, cfg, result)
         write_json(tmp / "results.json", results_json(cfg, result, tmp))
         write_atomic(tmp / MARKER, f"complete {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")

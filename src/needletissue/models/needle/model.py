@@ -260,7 +260,13 @@ def write_outputs(result: NeedleModelResult, out_dir: Path) -> None:
     files["figure_deformed"] = plot_deformed(result, out_dir / "needle_deformed.png").name
     files["figure_deflection"] = plot_deflection_curves(result, out_dir / "needle_deflection.png").name
     result.files = files
-    write_run_files(out_dir, {"needle_model": _config_dict(result.config)}, result.to_dict())
+    record = {"needle_model": _config_dict(result.config)}
+    contact = result.extra.get("contact")
+    if contact:  # the frictional interfaces, in the form `fe needle --config` reads back
+        s = next(iter(contact["settings"].values()), {})
+        record["contact"] = {"friction": contact["interfaces"], "dhat_mm": s.get("dhat_mm"),
+                             "eps_v_mm": s.get("eps_v_mm")}
+    write_run_files(out_dir, record, result.to_dict())
 
 
 def _config_dict(cfg: NeedleModelConfig) -> dict:
