@@ -144,10 +144,18 @@ def _table(out):
     t = Table(title=f"Ritz needle: d={m['diameter_mm']:g} mm, l={m['free_length_mm']:g} mm, "
               f"z3={m['load_point_mm']:g} mm, E={m['youngs_modulus_MPa']:g} MPa; {layers}; "
               f"cos term {'on' if m['cos_term'] else 'off'}")
-    for col in ("F N", "tip mm", "load mm", "max mm", "slope rad", "p", "it", "err mm", "conv"):
+    # "Newton" is the solve (always ok, with its iterations: it raises otherwise); "p ok" is the
+    # trial-function order: does raising p change v(z) by less than the tolerance?
+    for col in ("F N", "tip mm", "load mm", "max mm", "slope rad", "p", "Newton", "err mm", "p ok"):
         t.add_column(col, justify="right", no_wrap=True)
     for r in out["results"]:
         t.add_row(f"{r['force_N']:g}", f"{r['tip_deflection_mm']:.4f}", f"{r['load_point_deflection_mm']:.4f}",
                   f"{r['max_deflection_mm']:.4f}", f"{r['tip_slope_rad']:.4f}", str(r["order"]),
-                  str(r["iterations"]), f"{r['error_estimate_mm']:.1e}", "yes" if r["converged"] else "no")
-    Console().print(t)
+                  f"{'ok' if r['newton_converged'] else 'failed'} ({r['iterations']})",
+                  f"{r['error_estimate_mm']:.1e}", "yes" if r["order_converged"] else "no")
+    con = Console()
+    con.print(t)
+    if not all(r["order_converged"] for r in out["results"]):
+        tol = m.get("tol_mm")
+        con.print(f"p ok = no: the solve converged; raising the order p changes v(z) by err mm, more than "
+                  f"the tolerance{f' {tol:g} mm' if tol else ''} (--order auto raises p until it does not).")

@@ -1,7 +1,8 @@
 """Solve the Ritz model: one force (control loop), many forces, or arrays of parameter sets.
 
 Every answer carries `error_estimate_mm` (sup over z of the change of v(z) when the order is raised by
-one) and `converged` (error estimate <= tol_mm). A Newton solve that does not converge raises
+one) and `order_converged` (error estimate <= tol_mm: about the trial-function order p, not the solve;
+`converged` is its old name, kept for parsers). A Newton solve that does not converge raises
 ConvergenceError; no unconverged answer is ever returned.
 """
 
@@ -41,8 +42,14 @@ class RitzResult:
     order: int
     iterations: int  # Newton iterations of the order-p solve
     error_estimate_mm: float
-    converged: bool  # error_estimate_mm <= tol_mm
+    converged: bool  # error_estimate_mm <= tol_mm (the order, not Newton); alias order_converged
     free_length_mm: float
+
+    @property
+    def order_converged(self) -> bool:
+        """error_estimate_mm <= tol_mm: raising the order p changes v(z) by less than tol. Newton itself
+        always converged (it raises ConvergenceError otherwise)."""
+        return self.converged
 
     def deflection(self, z_mm) -> np.ndarray:
         """v(z) in mm at z in [0, l] mm."""
@@ -73,7 +80,9 @@ class RitzResult:
             "coefficients": list(self.coefficients),
             "order": self.order,
             "iterations": self.iterations,
-            "converged": self.converged,
+            "order_converged": self.converged,  # error_estimate_mm <= tol_mm: the order p is enough
+            "newton_converged": True,  # always: an unconverged Newton solve raises, never returns
+            "converged": self.converged,  # old name of order_converged, kept for parsers
             "error_estimate_mm": self.error_estimate_mm,
         }
 
@@ -97,9 +106,13 @@ class BatchResult:
     order: np.ndarray
     iterations: np.ndarray
     error_estimate_mm: np.ndarray
-    converged: np.ndarray
+    converged: np.ndarray  # error_estimate_mm <= tol_mm per sample (the order); alias order_converged
     free_length_mm: np.ndarray
     layer_names: tuple
+
+    @property
+    def order_converged(self) -> np.ndarray:
+        return self.converged
 
     def __len__(self) -> int:
         return self.force_N.shape[0]
