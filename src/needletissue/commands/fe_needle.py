@@ -8,6 +8,8 @@ from typing import List, Optional
 
 import typer
 
+from needletissue.errors import FORCE_RANGE_HELP
+
 
 def register(app: typer.Typer, groups) -> None:
     from needletissue.geometry.needle import NeedleGeometry
@@ -17,8 +19,9 @@ def register(app: typer.Typer, groups) -> None:
     @groups.fe.command("needle")
     def needle(
         ctx: typer.Context,
-        force: Optional[List[float]] = typer.Option(None, "--force", help="Reduction force, N (> 0; repeat; "
-                                                    "default 100 200 300), uniform over the gripper."),
+        force: Optional[List[float]] = typer.Option(None, "--force", help="Reduction force, N (repeat; "
+                                                    "default 100 200 300), uniform over the gripper; "
+                                                    f"{FORCE_RANGE_HELP}."),
         needles: int = typer.Option(d.needles, "--needles", help="Number of needles: 1 or 2."),
         diameter: float = typer.Option(d.diameter, "--diameter", help="Needle diameter d, mm (> 0)."),
         free_length: float = typer.Option(d.free_length, "--free-length",

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from needletissue.errors import FORCE_RANGE_HELP
+
 
 def register(app, groups) -> None:
     @groups.fe.command("pelvis")
@@ -14,7 +16,8 @@ def register(app, groups) -> None:
         ct: Path = typer.Option(None, "--ct", help="CT volume (NIfTI, HU). Default: the example CT in the data folder."),
         labels: Path = typer.Option(None, "--labels", help="Label map on the CT grid (TotalSegmentator ids)."),
         ssm: bool = typer.Option(False, "--ssm", help="Use the mean SSM bone surfaces (soft tissue by offsetting)."),
-        force: list[float] = typer.Option(None, "--force", help="Reduction force on the clamp, N (repeat)."),
+        force: list[float] = typer.Option(None, "--force", help="Reduction force on the clamp, N (repeat; "
+                                          f"{FORCE_RANGE_HELP})."),
         force_direction: str = typer.Option("0,0,-1", "--force-direction",
                                             help="Force direction x,y,z (patient RAS; made transverse to the needles)."),
         site: str = typer.Option("supra_acetabular", "--site", help="supra_acetabular or iliac_crest."),

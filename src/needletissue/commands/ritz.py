@@ -8,7 +8,8 @@ from typing import List, Optional
 
 import typer
 
-from needletissue.errors import InputError
+from needletissue.errors import FORCE_RANGE_HELP, InputError
+from needletissue.ritz.model import MAX_DEFLECTION_RATIO
 
 
 def _model(diameter, free_length, load_point, youngs_modulus, layer, no_cos):
@@ -56,7 +57,10 @@ def register(app: typer.Typer, groups) -> None:
     def ritz(
         ctx: typer.Context,
         force: Optional[List[float]] = typer.Option(None, "--force", help="Reduction force F, N (repeat; "
-                                                    "negative = opposite direction)."),
+                                                    f"negative = opposite direction; {FORCE_RANGE_HELP}). "
+                                                    "The model is valid while |v|max / l <= "
+                                                    f"{MAX_DEFLECTION_RATIO:g} (small rotations): beyond, "
+                                                    "a warning."),
         diameter: float = o["diameter"],
         free_length: float = o["free_length"],
         load_point: Optional[float] = o["load_point"],
@@ -75,10 +79,21 @@ def register(app: typer.Typer, groups) -> None:
             raise InputError("--force", "give at least one --force in N (e.g. --force 100 --force 300)")
         from needletissue.ritz import DEFAULT_TOL_MM, parse_order, solve_forces
 
+        from needletissue.errors import check_force
+
+        force = [check_force("--force", f, signed=True) for f in force]
         model = _model(diameter, free_length, load_point, youngs_modulus, layer, no_cos)
         parse_order(order)
         results = solve_forces(force, model, order=order)
         out = {"model": _model_json(model, order, DEFAULT_TOL_MM), "results": [r.to_json() for r in results]}
+        beyond = [r for r in results if not r.within_validity]
+        if beyond:
+            import sys
+
+            r = max(beyond, key=lambda r: r.deflection_ratio)
+            print(f"warning: --force {', '.join(f'{b.force_N:g}' for b in beyond)} N: |v|max / l up to "
+                  f"{r.deflection_ratio:.2f} > {MAX_DEFLECTION_RATIO:g}, beyond the Ritz model's small-rotation "
+                  "range (docs/ritz.md); use the FE model (fe needle) there", file=sys.stderr)
         if plot is not None:
             from needletissue.ritz.plot import plot_deflection
             from needletissue.runinfo import write_run_files

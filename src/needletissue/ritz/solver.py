@@ -16,7 +16,7 @@ import numpy as np
 
 from needletissue.errors import ConvergenceError, InputError, check_number
 from needletissue.ritz import basis, kernel
-from needletissue.ritz.model import RitzModel
+from needletissue.ritz.model import MAX_DEFLECTION_RATIO, RitzModel
 
 DEFAULT_TOL_MM = 1e-4
 _PARALLEL_MIN = 2_000  # below this a thread pool costs more than it saves
@@ -51,6 +51,15 @@ class RitzResult:
         always converged (it raises ConvergenceError otherwise)."""
         return self.converged
 
+    @property
+    def deflection_ratio(self) -> float:
+        """|v|max / l: the model is valid up to MAX_DEFLECTION_RATIO (small rotations)."""
+        return abs(self.max_deflection_mm) / self.free_length_mm
+
+    @property
+    def within_validity(self) -> bool:
+        return self.deflection_ratio <= MAX_DEFLECTION_RATIO
+
     def deflection(self, z_mm) -> np.ndarray:
         """v(z) in mm at z in [0, l] mm."""
         z = np.asarray(z_mm, dtype=float)
@@ -84,6 +93,8 @@ class RitzResult:
             "newton_converged": True,  # always: an unconverged Newton solve raises, never returns
             "converged": self.converged,  # old name of order_converged, kept for parsers
             "error_estimate_mm": self.error_estimate_mm,
+            "deflection_to_free_length": self.deflection_ratio,
+            "within_validity_range": self.within_validity,  # deflection_to_free_length <= 0.25
         }
 
 

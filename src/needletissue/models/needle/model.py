@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from needletissue.errors import InputError, check_number
+from needletissue.errors import InputError, check_force, check_number
 from needletissue.geometry.needle import NeedleGeometry, mesh_needle_model
 
 MATERIALS = {
@@ -46,7 +46,7 @@ class NeedleModelConfig:
             raise InputError("geometry", "must be a NeedleGeometry")
         if len(self.forces) == 0:
             raise InputError("forces", "give at least one force (N)")
-        f = [check_number("forces", v, gt=0) for v in self.forces]
+        f = [check_force("forces", v) for v in self.forces]
         if any(b <= a for a, b in zip(f, f[1:])):
             # one load path: the solver needs strictly increasing load factors
             object.__setattr__(self, "forces", tuple(sorted(set(f))))

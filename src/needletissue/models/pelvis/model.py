@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from needletissue.errors import InputError, check_number
+from needletissue.errors import InputError, check_force, check_number
 
 PAPER = {
     "forces_N": [100.0, 200.0, 300.0],
@@ -127,7 +127,7 @@ class PelvisConfig:
                 check_number(name, getattr(self, name), gt=0)
         if not self.forces:
             raise InputError("force", "give at least one force (N), e.g. --force 100 --force 200 --force 300")
-        self.forces = sorted(check_number("force", f, gt=0, le=5000) for f in self.forces)
+        self.forces = sorted(check_force("force", f) for f in self.forces)
         if len(set(self.forces)) != len(self.forces):
             raise InputError("force", f"forces must be distinct, got {self.forces}")
         check_number("mesh_size", self.mesh_size, ge=0.5, le=20)
