@@ -53,3 +53,9 @@ def test_parser_errors_are_one_line_like_ours(args, named):
 
 def test_exit_codes_pass_through():
     assert _main("--help").returncode == 0 and _main("ritz", "--force", "10", "--json").returncode == 0
+
+
+def test_too_fine_needle_mesh_is_refused_before_meshing(tmp_path):
+    r = _main("fe", "needle", "--mesh-size", "0.02", "--out", str(tmp_path / "out"))
+    assert r.returncode == 2 and r.stderr.startswith("error: mesh_size: about ") and "--max-tetrahedra" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()

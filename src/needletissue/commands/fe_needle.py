@@ -35,6 +35,10 @@ def register(app: typer.Typer, groups) -> None:
                                                help="Element size on the needles, mm (<= diameter)."),
         far_mesh_size: float = typer.Option(d.far_mesh_size, "--far-mesh-size",
                                             help="Element size at the far boundary, mm (>= mesh size)."),
+        max_tetrahedra: int = typer.Option(d.max_tetrahedra, "--max-tetrahedra",
+                                           help="Refuse, before meshing, a mesh estimated above this many "
+                                                "tetrahedra (the estimate is within 2x of gmsh's count); "
+                                                "raise it to run a finer mesh on purpose."),
         direction: str = typer.Option("0,1,0", "--direction",
                                       help="Force direction x,y,z (normalised; default y: lateral, "
                                            "perpendicular to the needles and their plane)."),
@@ -116,7 +120,7 @@ def register(app: typer.Typer, groups) -> None:
 
 
 _GEOMETRY_OPTIONS = ("needles", "diameter", "free_length", "spacing", "depth", "mesh_size", "needle_mesh_size",
-                     "far_mesh_size")
+                     "far_mesh_size", "max_tetrahedra")
 _CONTACT_KEYS = ("interfaces", "friction", "dhat_mm", "eps_v_mm")
 
 
