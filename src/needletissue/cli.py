@@ -84,6 +84,6 @@ def main() -> None:
         _error(" ".join(e.format_message().split()) + where, 2)
     except exc.ClickException as e:
         _error(" ".join(e.format_message().split()), e.exit_code)
-    except exc.Abort:
+    except typer.Abort:
         _error("aborted", 130)
     sys.exit(rv if isinstance(rv, int) else 0)

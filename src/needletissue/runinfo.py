@@ -147,6 +147,25 @@ def current_umask() -> int:
     return mask
 
 
+def check_output_dir(path: str | Path, field: str = "--out") -> Path:
+    """Refuse, before anything is computed or written, an output folder that cannot be written: a file,
+    or a folder (or, when absent, its nearest existing parent) in which no folder can be made (read-only
+    permissions or file system). The check makes and removes an empty probe folder; it leaves nothing."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(field, f"{path} exists and is not a folder")
+    probe = path
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise InputError(field, f"{path}: {probe} is not a folder")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".needletissue-probe-", dir=probe))
+    except OSError as exc:
+        raise InputError(field, f"{path}: cannot write in {probe}: {exc.strerror or exc}") from None
+    return path
+
+
 def write_atomic(path: str | Path, data: bytes | str) -> Path:
     """Write to a temporary file in the same folder, then rename: never a half-written file.
 

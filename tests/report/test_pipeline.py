@@ -126,3 +126,69 @@ def test_results_are_relocatable(tmp_path):
             assert str(tmp_path) not in f.read_text(encoding="utf-8"), f
     data = json.loads((out / "results.json").read_text(encoding="utf-8"))["stages"]["s"]
     assert data["result"]["vtu"] == "s/x.vtu" == data["files"][0] and (out / data["result"]["vtu"]).is_file()
+
+
+SLOW_STAGE = '''
+import os, time
+
+def run(cfg, ctx):
+    d = ctx.stage_dir("slow")
+    (ctx.run_dir.parent / "worker.pid").write_text(str(os.getpid()))
+    for i in range(600):
+        (d / "tick.txt").write_text(str(i))
+        time.sleep(0.1)
+'''
+
+DRIVER = '''
+import sys
+sys.path.insert(0, sys.argv[1])
+from slowstage import run
+from needletissue.report.config import load_config
+from needletissue.report.pipeline import Stage, run_reproduce
+run_reproduce(load_config(), sys.argv[2], [Stage("slow", "Slow", run, lambda c, x: (True, ""), isolated=True)],
+              progress=False)
+'''
+
+
+@pytest.mark.parametrize("sig, code", [("SIGTERM", 143), ("SIGINT", None)])
+def test_signal_stops_workers_removes_temp_folder_and_exits_non_zero(tmp_path, sig, code):
+    """Before: SIGTERM left the hidden temp folder and a worker computing on for 30 s."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    (tmp_path / "slowstage.py").write_text(SLOW_STAGE)
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    out = runs / "res"
+    p = subprocess.Popen([sys.executable, "-c", DRIVER, str(tmp_path), str(out)], stderr=subprocess.PIPE, text=True)
+    pid_file = runs / "worker.pid"
+    t0 = time.time()
+    while not pid_file.exists() or not pid_file.read_text():
+        assert p.poll() is None and time.time() - t0 < 60, p.stderr.read() if p.poll() is not None else "slow start"
+        time.sleep(0.1)
+    worker = int(pid_file.read_text())
+    p.send_signal(getattr(signal, sig))
+    rc = p.wait(timeout=30)
+    assert rc != 0 and (code is None or rc == code), rc
+    for _ in range(50):  # the worker is gone (terminated and reaped, not orphaned)
+        try:
+            os.kill(worker, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        os.kill(worker, signal.SIGKILL)
+        pytest.fail("the worker process survived")
+    assert sorted(x.name for x in runs.iterdir()) == ["worker.pid"]  # no result, no hidden temp folder
+
+
+@pytest.mark.parametrize("where", ["proc", "under_file"])
+def test_unwritable_out_is_refused_before_any_stage(tmp_path, where):
+    (tmp_path / "f").write_text("x")
+    out = {"proc": "/proc/needletissue-test/res", "under_file": tmp_path / "f" / "res"}[where]
+    with pytest.raises(InputError) as e:
+        run_reproduce(load_config(), out, [Stage("a", "A", _broken, _always)], progress=False)
+    assert e.value.field == "--out" and sorted(p.name for p in tmp_path.iterdir()) == ["f"]

@@ -20,7 +20,7 @@ from needletissue.runinfo import read_toml
 from needletissue.studies.config import validation_to_input_error
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # TOML has nan, inf
 
 
 def _forces(v: list[float]) -> list[float]:
