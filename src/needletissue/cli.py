@@ -69,6 +69,12 @@ def _error(message: str, code: int):
 def main() -> None:
     """Entry point: user errors (ours and the command-line parser's) -> one red line `error: ...` and
     exit code 2, never a traceback or a boxed panel."""
+    import warnings
+
+    def one_line(message, category, filename, lineno, file=None, line=None):  # not path:line + source
+        err.print(f"[yellow]warning:[/yellow] {escape(str(message))}", soft_wrap=True)
+
+    warnings.showwarning = one_line
     exc = _click_exceptions()
     try:
         rv = app(standalone_mode=False)

@@ -186,6 +186,8 @@ def test_coarse_solve_equilibrium_and_monotone(tmp_path):
     deformation grows with the force, and the needle ends move more than the tissue."""
     from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
+    from needletissue.models.pelvis.model import MATERIALS as gp_materials
+
     cfg = PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[50.0, 100.0],
                        out=str(tmp_path), figures=False, crosscheck_thickness=False)
     res = run_pelvis_model(cfg)
@@ -206,6 +208,16 @@ def test_coarse_solve_equilibrium_and_monotone(tmp_path):
     for name in ("pelvis_results.json", "results.json", "config.toml"):
         assert str(tmp_path) not in (tmp_path / name).read_text(encoding="utf-8"), name
     assert data["results"][-1]["vtu"] == "pelvis_100N.vtu"
+    # ParaView: the series, and one numbering of the regions in the mesh and the result files
+    import meshio
+
+    assert 'timestep="100.0" part="0" file="pelvis_100N.vtu"' in (tmp_path / "pelvis.pvd").read_text(encoding="utf-8")
+    res_vtu, mesh_vtu = meshio.read(tmp_path / "pelvis_100N.vtu"), meshio.read(tmp_path / "pelvis_mesh.vtu")
+    tags = data["mesh"]["region_tags"]
+    assert {f"region {i} = {r} (material {gp_materials[r]})" for r, i in tags.items()} <= set(res_vtu.field_data)
+    counts = np.bincount(mesh_vtu.cell_data["region"][0], minlength=len(tags))
+    assert counts.tolist() == np.bincount(res_vtu.cell_data["region"][0], minlength=len(tags)).tolist()
+    assert set(data["results"][-1]["drucker_unstable_volume_fraction"]) <= set(tags)
     moved = tmp_path.parent / (tmp_path.name + "_moved")
     shutil.copytree(tmp_path, moved)
     shutil.rmtree(tmp_path)

@@ -126,6 +126,12 @@ def ritz_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
 # --- per-tissue deformation bar chart (results of an FE stage; plotting only) ----------------------
 
 
+def drucker_notes(results: list[dict]) -> list[str]:
+    """A warning note per force and region with tissue beyond its Drucker-stable range."""
+    return [f"warning: {r['force_N']:g} N: {100 * f:.3g} % of {region} is beyond its Drucker-stable stretch range"
+            for r in results for region, f in (r.get("drucker_unstable_volume_fraction") or {}).items() if f > 0]
+
+
 def plot_region_deformation(results: list[dict], path, title: str, dpi: int = 110):
     """Grouped bars: maximum displacement (mm) of every region at every force."""
     import io
@@ -181,18 +187,23 @@ def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     # here and render in a child process (a VTK crash then costs a picture, not the results).
     res = run_needle_model(NeedleModelConfig(geometry=geom, forces=tuple(c.forces_N)))
     data = res.to_dict()
+    from needletissue.fem.result import write_series
+    from needletissue.models.needle.model import FRAME
+
     files = []
     for r in res.results:
         files.append(d / f"needle_{r.force_N:g}N.vtu")
-        r.fe.write_vtu(files[-1])
+        r.fe.write_vtu(files[-1], frame=FRAME, force_N=r.force_N)
+    files.append(write_series(d / "needle.pvd", [(r.force_N, f.name) for r, f in zip(res.results, files)]))
     notes = [f"mesh: {res.mesh['tetrahedra']:,} tetrahedra (order {res.mesh['order']}, {res.mesh['dofs']:,} dofs), "
              f"wall time {res.wall_time_s:.1f} s"]
+    notes += drucker_notes(data["results"])
     figs = [plot_deflection_curves(res, d / "needle_deflection_theory_vs_fe.png"),
             plot_theory_vs_fe(data["results"], d / "needle_max_deformation_vs_force.png",
                               f"Needle FE model ({c.needles} needle(s)) vs Ritz and the paper", cfg.report.dpi),
             plot_region_deformation(data["results"], d / "needle_fe_region_deformation.png",
                                     "Needle FE model: maximum deformation per region", cfg.report.dpi)]
-    try_render(files[-1], d / "needle_deformed.png", f"needle FE model, {res.results[-1].force_N:g} N "
+    try_render(d / f"needle_{res.results[-1].force_N:g}N.vtu", d / "needle_deformed.png", f"needle FE model, {res.results[-1].force_N:g} N "
                "(true scale), |u| in mm", notes, figs)
     comps = []
     for r in res.results:
@@ -244,8 +255,9 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     res = run_pelvis_model(PelvisConfig(source=c.source, ct=ct, labels=labels, forces=list(c.forces_N),
                                         mesh_size=c.mesh_size_mm, out=str(d), figures=False))
     data = res.to_dict()
-    files = sorted(d.glob("*.vtu"))
+    files = sorted(d.glob("*.vtu")) + sorted(d.glob("*.pvd"))
     notes = [f"mesh: {res.mesh.get('tetrahedra', 0):,} tetrahedra, wall time {res.wall_time_s:.1f} s", *res.notes]
+    notes += drucker_notes(data["results"])
     figs = [plot_theory_vs_fe(data["results"], d / "pelvis_max_deformation_vs_force.png",
                               "Anatomical model vs Ritz and the paper", cfg.report.dpi),
             plot_region_deformation(data["results"], d / "pelvis_region_deformation.png",

@@ -24,6 +24,8 @@ MATERIALS = {
     "adipose": "adipose", "needle_1": "needle", "needle_2": "needle", "clamp": "clamp",
 }
 TISSUE_FAR = ("fixed", "free")
+FRAME = ("needle model, mm: z along the needles (0 at the bone surface, tissue above), x across the needles, "
+         "y lateral (the default force direction)")
 
 
 @dataclass(frozen=True)
@@ -101,6 +103,7 @@ class NeedleLoadResult:
             "needle_end_deflection_mm": self.needle_end_deflection_mm,
             "newton_iterations": self.newton_iterations,
             "steps": self.steps,
+            "drucker_unstable_volume_fraction": self.fe.drucker_unstable_fraction if self.fe is not None else {},
             "reaction_forces_N": {k: np.asarray(v).tolist() for k, v in self.fe.reaction_forces.items()}
             if self.fe is not None else {},
             "deflection_curves": {k: {"z_mm": c.z_mm.tolist(), "deflection_mm": c.deflection_mm.tolist()}
@@ -250,11 +253,15 @@ def write_outputs(result: NeedleModelResult, out_dir: Path) -> None:
     from needletissue.runinfo import write_run_files
 
     out_dir.mkdir(parents=True, exist_ok=True)
+    from needletissue.fem.result import write_series
+
     files = {"mesh": "needle_model.msh"}
     for r in result.results:
         name = f"needle_{r.force_N:g}N.vtu"
-        r.fe.write_vtu(out_dir / name)
+        r.fe.write_vtu(out_dir / name, frame=FRAME, force_N=r.force_N)
         files[f"vtu_{r.force_N:g}N"] = name
+    files["series"] = write_series(out_dir / "needle.pvd", [(r.force_N, files[f"vtu_{r.force_N:g}N"])
+                                                          for r in result.results]).name
     from needletissue.models.needle.plot import plot_deflection_curves, plot_deformed
 
     files["figure_deformed"] = plot_deformed(result, out_dir / "needle_deformed.png").name

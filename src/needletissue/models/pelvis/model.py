@@ -37,6 +37,8 @@ PAPER = {
     "elements": 1329469,
 }
 
+FRAME = "patient RAS, mm (x right, y anterior, z superior), the CT's scanner coordinates"
+
 MATERIALS = {
     "hip_cortical": "cortical_bone",
     "hip_cancellous": "cancellous_bone",
@@ -156,6 +158,8 @@ class LoadResult:
     newton_iterations: int
     reactions_N: dict = field(default_factory=dict)
     vtu: str | None = None
+    # per region: volume fraction beyond the tissue law's Drucker-stable range (fem FEResult.check_drucker)
+    drucker_unstable_volume_fraction: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -335,10 +339,10 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         clamp_u = float(np.linalg.norm(r.displacement[gripper_nodes].mean(axis=0)))
         vtu = None
         if out_dir is not None:
-            vtu = str(r.write_vtu(out_dir / f"pelvis_{int(round(f))}N.vtu"))
+            vtu = str(r.write_vtu(out_dir / f"pelvis_{int(round(f))}N.vtu", frame=FRAME, force_N=f))
         loads.append(LoadResult(f, nmax, clamp_u, by, rt, None if rt is None else abs(rt - nmax), needles,
                                 r.newton_iterations, {k: np.asarray(v).tolist() for k, v in r.reaction_forces.items()},
-                                vtu))
+                                vtu, dict(r.drucker_unstable_fraction)))
     from needletissue.geometry.pelvis import SOFT_TISSUES
 
     last = loads[-1].max_deformation_mm
@@ -386,8 +390,16 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         pm_m = pm.to_meshio()
         import meshio
 
+        from needletissue.fem.result import write_series
+
+        # the same region numbers as the results' VTU ("region"; -1 on the boundary triangles)
+        tags = fe[-1].region_tags
+        pm_m.cell_data["region"] = [np.concatenate([np.full(len(ids), tags.get(n, -1), np.int32)
+                                                    for n, ids in pm.regions.items()]),
+                                    np.full(len(pm_m.cells[1].data), -1, np.int32)]
         out_dir.mkdir(parents=True, exist_ok=True)
         meshio.write(out_dir / "pelvis_mesh.vtu", pm_m)
+        write_series(out_dir / "pelvis.pvd", [(x.force_N, Path(x.vtu).name) for x in loads if x.vtu])
         res.wall_time_s = time.perf_counter() - t0
         from needletissue.models.pelvis.report import comparison_markdown, render_in_subprocess
         from needletissue.runinfo import write_atomic
