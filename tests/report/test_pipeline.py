@@ -192,3 +192,12 @@ def test_unwritable_out_is_refused_before_any_stage(tmp_path, where):
     with pytest.raises(InputError) as e:
         run_reproduce(load_config(), out, [Stage("a", "A", _broken, _always)], progress=False)
     assert e.value.field == "--out" and sorted(p.name for p in tmp_path.iterdir()) == ["f"]
+
+
+def test_verdicts_state_their_tolerance():
+    """agrees within 5 % of the paper's value, differs beyond (with the signed difference), a criterion
+    row is read against its limit, a row without a like-for-like paper value has no verdict."""
+    assert Comparison("q", 17.7, "mm", "ritz_tip_deflection_300N_mm").verdict == "agrees (within 5 %)"
+    assert Comparison("q", 25.13, "mm", "ritz_tip_deflection_300N_mm").verdict == "differs (+43 %, tolerance 5 %)"
+    assert Comparison("q", 0.01, "MPa", "traction_rmse_muscle_MPa", limit=0.05).verdict.startswith("meets")
+    assert Comparison("q", 25.13, "mm", None).verdict == ""

@@ -41,13 +41,15 @@ def comparison_table(result) -> str:
     if not rows:
         return "<p>No stage produced a number the paper reports.</p>"
     out = ['<table><tr><th class="l">quantity</th><th>ours</th><th>paper</th><th>difference</th>'
-           '<th>difference %</th><th class="l">unit</th><th class="l">paper source / note</th></tr>']
+           '<th>difference %</th><th class="l">unit</th><th class="l">verdict</th>'
+           '<th class="l">paper source / note</th></tr>']
     for c in rows:
         j = c.to_json()
         src = " — ".join(x for x in (j["paper_source"], c.note) if x)
         out.append(f'<tr><td class="l">{html.escape(c.quantity)}</td><td>{_fmt(c.ours)}</td>'
                    f'<td>{_fmt(j["paper"])}</td><td>{_fmt(j["difference"], 3)}</td>'
                    f'<td>{_fmt(j["relative_difference_percent"], 3)}</td><td class="l">{html.escape(c.unit)}</td>'
+                   f'<td class="l">{html.escape(j["verdict"])}</td>'
                    f'<td class="l">{html.escape(src)}</td></tr>')
     out.append("</table>")
     return "\n".join(out)
