@@ -58,7 +58,7 @@ def console_commands(block: Block) -> list[tuple[str, list[str]]]:
 
 
 def environment() -> dict:
-    env = dict(os.environ, COLUMNS="120", NO_COLOR="1", TERM="dumb", PYTHONWARNINGS="ignore")
+    env = dict(os.environ, COLUMNS="100", NO_COLOR="1", TERM="dumb", PYTHONWARNINGS="ignore")
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
     return env
 

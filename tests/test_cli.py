@@ -30,3 +30,32 @@ def test_console_entry_point_version():
     r = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", "--version"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and __version__ in r.stdout
+
+
+def _main(*args, **kw):
+    return subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", *args],
+                          capture_output=True, text=True, timeout=120, **kw)
+
+
+@pytest.mark.parametrize("args, named", [(["ritz", "--force", "abc"], "--force"),
+                                         (["ritz", "--bogus"], "--bogus"),
+                                         (["fe", "needle", "--order", "x"], "--order"),
+                                         (["nosuch"], "nosuch"),
+                                         (["segment"], "ct")])
+def test_parser_errors_are_one_line_like_ours(args, named):
+    """Typer's boxed usage panels become the one-line `error: ...` the package's own errors use."""
+    r = _main(*args)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and named in lines[0], r.stderr
+    assert "╭" not in r.stderr and "Traceback" not in r.stderr and r.stdout == ""
+
+
+def test_exit_codes_pass_through():
+    assert _main("--help").returncode == 0 and _main("ritz", "--force", "10", "--json").returncode == 0
+
+
+def test_too_fine_needle_mesh_is_refused_before_meshing(tmp_path):
+    r = _main("fe", "needle", "--mesh-size", "0.02", "--out", str(tmp_path / "out"))
+    assert r.returncode == 2 and r.stderr.startswith("error: mesh_size: about ") and "--max-tetrahedra" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()

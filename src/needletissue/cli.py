@@ -52,13 +52,44 @@ for _module in _COMMAND_MODULES:
     _module.register(app, groups)
 
 
-def main() -> None:
-    """Entry point: user errors -> one red line and exit code 2, never a traceback."""
+def _click_exceptions():
+    """Typer >= 0.2x runs on its own copy of click; older ones on click itself."""
     try:
-        app()
-    except InputError as exc:
-        err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)  # one line, paths unbroken
-        sys.exit(2)
-    except NeedleTissueError as exc:
-        err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)  # one line, paths unbroken
-        sys.exit(1)
+        from typer._click import exceptions
+    except ImportError:  # pragma: no cover
+        from click import exceptions
+    return exceptions
+
+
+def _error(message: str, code: int):
+    err.print(f"[red]error:[/red] {escape(message)}", soft_wrap=True)  # one line, paths unbroken
+    sys.exit(code)
+
+
+def main() -> None:
+    """Entry point: user errors (ours and the command-line parser's) -> one red line `error: ...` and
+    exit code 2, never a traceback or a boxed panel."""
+    import warnings
+
+    def one_line(message, category, filename, lineno, file=None, line=None):  # not path:line + source
+        err.print(f"[yellow]warning:[/yellow] {escape(str(message))}", soft_wrap=True)
+
+    warnings.showwarning = one_line
+    exc = _click_exceptions()
+    try:
+        rv = app(standalone_mode=False)
+    except InputError as e:
+        _error(str(e), 2)
+    except NeedleTissueError as e:
+        _error(str(e), 1)
+    except exc.NoArgsIsHelpError as e:  # a bare group: its help, as before
+        e.show()
+        sys.exit(e.exit_code)
+    except exc.UsageError as e:  # bad option value, unknown option or command, missing argument
+        where = f" (see `{e.ctx.command_path} --help`)" if e.ctx is not None else ""
+        _error(" ".join(e.format_message().split()) + where, 2)
+    except exc.ClickException as e:
+        _error(" ".join(e.format_message().split()), e.exit_code)
+    except typer.Abort:
+        _error("aborted", 130)
+    sys.exit(rv if isinstance(rv, int) else 0)

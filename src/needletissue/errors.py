@@ -47,3 +47,21 @@ def check_number(field: str, value, *, gt=None, ge=None, le=None, lt=None) -> fl
     if not ok:
         raise InputError(field, f"must be {' and '.join(bounds)}, got {value}")
     return value
+
+
+# One force range for every model and command (ritz, fe needle, fe pelvis, reproduce, studies): the
+# reduction forces of pelvic fracture surgery reach a few hundred N (the paper: 100-300 N); 2000 N
+# leaves room for studies while catching typos (1e6) that no model here is meant for.
+FORCE_LIMIT_N = 2000.0
+FORCE_RANGE_HELP = (f"|F| <= {FORCE_LIMIT_N:g} N, the force range shared by ritz, fe needle, fe pelvis and "
+                    "reproduce (F > 0 in the FE models, whose direction is its own option)")
+
+
+def check_force(field: str, value, *, signed: bool = False) -> float:
+    """A reduction force in N within the shared range: 0 < F <= FORCE_LIMIT_N, or |F| <= it with signed."""
+    f = check_number(field, value)
+    if abs(f) > FORCE_LIMIT_N if signed else not 0 < f <= FORCE_LIMIT_N:
+        allowed = f"|F| <= {FORCE_LIMIT_N:g} N" if signed else f"0 < F <= {FORCE_LIMIT_N:g} N"
+        raise InputError(field, f"must be {allowed} (the force range shared by ritz, fe needle, fe pelvis "
+                                f"and reproduce), got {f:g}")
+    return f

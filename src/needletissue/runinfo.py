@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import platform
@@ -15,21 +16,85 @@ import numpy as np
 
 from needletissue.errors import InputError
 
+# every package that shapes a number, mesh or file (pyproject's dependencies, plus MKL under
+# pypardiso and llvmlite under numba); tests/test_runinfo.py checks the list covers pyproject.toml
 _PACKAGES = (
-    "needletissue", "numpy", "scipy", "felupe", "tensortrax", "gmsh", "meshio", "pyvista",
-    "vtk", "SimpleITK", "nibabel", "scikit-image", "matplotlib", "dask", "distributed", "pydantic",
+    "numpy", "scipy", "felupe", "tensortrax", "gmsh", "meshio", "pyvista", "vtk", "SimpleITK", "nibabel",
+    "pydicom", "scikit-image", "matplotlib", "dask", "distributed", "pydantic", "pandas", "pyarrow",
+    "pyamg", "pypardiso", "mkl", "ipctk", "tetgen", "numba", "llvmlite", "threadpoolctl", "tomli_w",
+    "typer", "rich",
 )
 
 
 def versions() -> dict[str, str]:
-    """Installed versions of the packages that shape a result."""
-    out = {"python": sys.version.split()[0], "platform": platform.platform()}
+    """Installed versions of the packages that shape a result, and the BLAS/LAPACK libraries loaded."""
+    from needletissue import __version__
+
+    out = {"python": sys.version.split()[0], "platform": platform.platform(), "needletissue": __version__}
     for name in _PACKAGES:
         try:
             out[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
             pass
+    blas = _blas_libraries()
+    if blas:
+        out["blas"] = blas
     return out
+
+
+def _blas_libraries() -> str:
+    """e.g. "openblas 0.3.27 (openmp); mkl 2024.1": which libraries the solves ran on."""
+    try:
+        from threadpoolctl import threadpool_info
+
+        seen = []
+        for lib in threadpool_info():
+            if lib.get("user_api") != "blas":
+                continue
+            item = f"{lib.get('internal_api')} {lib.get('version') or '?'}"
+            if lib.get("threading_layer") not in (None, "unknown"):
+                item += f" ({lib['threading_layer']})"
+            if item not in seen:
+                seen.append(item)
+        return "; ".join(seen)
+    except Exception:  # a record must never fail a run
+        return ""
+
+
+@functools.lru_cache(maxsize=1)
+def _git_state() -> tuple[str | None, bool | None]:
+    """(commit, dirty) of the checkout the package runs from, or (None, None) when it is installed."""
+    import subprocess
+
+    src = Path(__file__).resolve().parent
+    try:
+        top = subprocess.run(["git", "-C", str(src), "rev-parse", "--show-toplevel"], capture_output=True,
+                             text=True, timeout=5)
+        if top.returncode != 0 or (Path(top.stdout.strip()) / "src" / "needletissue").resolve() != src:
+            return None, None
+        head = subprocess.run(["git", "-C", str(src), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              timeout=5)
+        dirty = subprocess.run(["git", "-C", str(src), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=5)
+        return (head.stdout.strip() or None), (bool(dirty.stdout.strip()) if dirty.returncode == 0 else None)
+    except (OSError, subprocess.SubprocessError):
+        return None, None
+
+
+def run_record() -> dict:
+    """When, by which command and from which source a result was made."""
+    import datetime
+    import shlex
+
+    commit, dirty = _git_state()
+    argv = [Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python", *sys.argv[1:]]
+    return {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "command": shlex.join(argv), "git_commit": commit, "git_dirty": dirty}
+
+
+def version_record() -> dict:
+    """versions.json: the package versions (top level, as before) and the run record under "run"."""
+    return {**versions(), "run": run_record()}
 
 
 def to_jsonable(obj):
@@ -68,8 +133,44 @@ def make_dir(path: str | Path) -> Path:
     return path
 
 
+def current_umask() -> int:
+    """The process umask, read without changing it where the OS allows (Linux /proc), else set+restore."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def check_output_dir(path: str | Path, field: str = "--out") -> Path:
+    """Refuse, before anything is computed or written, an output folder that cannot be written: a file,
+    or a folder (or, when absent, its nearest existing parent) in which no folder can be made (read-only
+    permissions or file system). The check makes and removes an empty probe folder; it leaves nothing."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(field, f"{path} exists and is not a folder")
+    probe = path
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise InputError(field, f"{path}: {probe} is not a folder")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".needletissue-probe-", dir=probe))
+    except OSError as exc:
+        raise InputError(field, f"{path}: cannot write in {probe}: {exc.strerror or exc}") from None
+    return path
+
+
 def write_atomic(path: str | Path, data: bytes | str) -> Path:
-    """Write to a temporary file in the same folder, then rename: never a half-written file."""
+    """Write to a temporary file in the same folder, then rename: never a half-written file.
+
+    The file gets the mode an ordinary ``open()`` would give (0666 minus the umask), not mkstemp's 0600,
+    so colleagues and web servers can read the reports and figures when the umask lets them."""
     path = Path(path)
     make_dir(path.parent)
     try:
@@ -79,6 +180,7 @@ def write_atomic(path: str | Path, data: bytes | str) -> Path:
     if isinstance(data, str):
         data = data.encode("utf-8")  # reports carry mu, minus signs: never the locale's codec
     try:
+        os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
@@ -100,18 +202,41 @@ def save_figure(fig, path: str | Path, dpi: int = 150) -> Path:
     return write_atomic(path, buf.getvalue())
 
 
+def relocate(obj, root: str | Path):
+    """JSON data with every absolute path inside ``root`` made relative to it (POSIX form, "." for
+    root itself), so a result folder can be copied, moved or shared: a path in a file is relative to
+    the folder holding that file. Paths outside ``root`` (inputs such as a CT) stay as they were."""
+    root = Path(os.path.realpath(root))
+
+    def one(v):
+        if isinstance(v, dict):
+            return {k: one(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [one(x) for x in v]
+        if isinstance(v, str) and v.startswith(os.sep) and len(v) < 4096:
+            p = Path(os.path.realpath(v))
+            if p == root or root in p.parents:
+                return p.relative_to(root).as_posix() or "."
+        return v
+
+    return one(to_jsonable(obj))
+
+
 def write_json(path: str | Path, obj) -> Path:
-    return write_atomic(path, json.dumps(to_jsonable(obj), indent=2) + "\n")
+    """JSON, atomically; paths inside the file's folder written relative to it (relocatable)."""
+    path = Path(path)
+    return write_atomic(path, json.dumps(relocate(obj, path.parent), indent=2) + "\n")
 
 
 def write_run_files(out_dir: str | Path, config, results) -> None:
-    """The three files every run leaves: resolved config (TOML), versions and results (JSON)."""
+    """The three files every run leaves: resolved config (TOML), versions and results (JSON).
+    Paths inside out_dir are written relative to it (see `relocate`)."""
     import tomli_w
 
     out_dir = Path(out_dir)
-    cfg = to_jsonable(config)
+    cfg = relocate(config, out_dir)
     write_atomic(out_dir / "config.toml", tomli_w.dumps(_drop_none(cfg)))
-    write_json(out_dir / "versions.json", versions())
+    write_json(out_dir / "versions.json", version_record())
     write_json(out_dir / "results.json", results)
 
 
@@ -136,3 +261,33 @@ def read_toml(path: str | Path, field: str = "--config") -> dict:
         raise InputError(str(path), f"cannot read: {exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise InputError(str(path), f"not valid TOML: {exc}") from None
+
+
+def dataclass_from(cls, data: dict, where: str = "--config"):
+    """Build dataclass `cls` from a TOML/JSON table (as config.toml holds it): nested dataclass fields
+    from sub-tables, lists to tuples where the field's default is a tuple; an unknown key is an
+    InputError naming it and the allowed ones (a typo must not silently fall back to a default)."""
+    import dataclasses
+    import typing
+
+    if not isinstance(data, dict):
+        raise InputError(where, f"expected a table, got {data!r}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise InputError(f"{where}: {unknown[0]}", f"unknown field; allowed: {', '.join(fields)}")
+    hints = typing.get_type_hints(cls)
+    kw = {}
+    for name, value in data.items():
+        hint = hints.get(name)
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint) and isinstance(value, dict):
+            value = dataclass_from(hint, value, f"{where}: {name}")
+        elif isinstance(value, list) and isinstance(fields[name].default, tuple):
+            value = tuple(value)
+        elif isinstance(value, list) and typing.get_origin(hint) is tuple:
+            value = tuple(value)
+        kw[name] = value
+    try:
+        return cls(**kw)
+    except TypeError as exc:
+        raise InputError(where, str(exc)) from None

@@ -46,3 +46,56 @@ def test_affine_deformation_reproduced(order, formulation):
     np.testing.assert_allclose(vm.mean(), np.sqrt(1.5 * np.sum(s * s)), rtol=1e-8)  # deviatoric: no pressure
     np.testing.assert_allclose(res.cell_data["principal_stretches"][0],
                                np.sqrt(np.linalg.eigvalsh(F.T @ F)), rtol=1e-10)
+
+
+def test_tensors_drucker_flag_and_paraview_files(tmp_path):
+    """Under the homogeneous F: every cell's Cauchy tensor is the material's sigma(F) (FElupe's
+    constitutive evaluation), its Green-Lagrange strain (F^T F - I) / 2, its Drucker flag the verdict of
+    materials.stability at F; the VTU names regions, materials and frame in field data, the .pvd lists
+    the loads with their load factor as time."""
+    import meshio
+
+    from needletissue.fem.result import write_results
+    from needletissue.materials.stability import stable_at
+
+    model = FEModel(distorted_box(), {"muscle": "muscle"}, order=1)
+    bcs = [PrescribedDisplacement("boundary", lambda x: x @ (F - np.eye(3)).T)]
+    results = solve(model, bcs, [0.5, 1.0], progress=False)
+    res = results[-1]
+    mat = materials.get("muscle")
+    P = mat.umat(bulk=mat.bulk).gradient([F.reshape(3, 3, 1, 1), None])[0][..., 0, 0]
+    sigma = P @ F.T / np.linalg.det(F)
+    np.testing.assert_allclose(res.cell_data["cauchy_stress_MPa"], np.tile(sigma.ravel(), (len(model.mesh.cells), 1)),
+                               rtol=1e-8, atol=1e-10 * np.abs(sigma).max())
+    np.testing.assert_allclose(res.cell_data["green_lagrange_strain"][0], (0.5 * (F.T @ F - np.eye(3))).ravel(),
+                               atol=1e-12)
+    assert set(res.cell_data["drucker_stable"]) == {int(stable_at("muscle", F.reshape(3, 3, 1))[0])}
+    assert res.materials == {"muscle": "muscle"}
+    assert res.drucker_unstable_fraction["muscle"] in (0.0, 1.0)
+    payload = write_results(tmp_path, results, {})
+    m = meshio.read(tmp_path / payload["vtu"][-1])
+    assert "region 0 = muscle (material muscle)" in m.field_data and m.field_data["load_factor"][0] == 1.0
+    assert any(k.startswith("coordinate frame: ") for k in m.field_data)
+    assert m.cell_data["cauchy_stress_MPa"][0].shape == (len(model.mesh.cells), 9)
+    pvd = (tmp_path / "fe.pvd").read_text(encoding="utf-8")
+    assert 'timestep="0.5" part="0" file="fe_0.vtu"' in pvd and 'timestep="1.0" part="0" file="fe_1.vtu"' in pvd
+
+
+def test_tissue_beyond_its_drucker_range_is_flagged_and_warned():
+    """Muscle (MR5) stretched uniaxially 5 % beyond its Drucker-stable range (materials.stability): the
+    whole block is flagged, with a warning; 5 % inside it, nothing is."""
+    import warnings
+
+    from needletissue.materials.stability import UnstableMaterialWarning, stable_range
+
+    _, hi = stable_range("mooney_rivlin_5", materials.get("muscle").parameters, "uniaxial")
+    for lam, expect in ((0.95 * hi, 0.0), (1.05 * hi, 1.0)):
+        Fu = np.diag([lam ** -0.5, lam ** -0.5, lam])  # isochoric uniaxial stretch
+        model = FEModel(distorted_box(), {"muscle": "muscle"}, order=1)
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            res = solve(model, [PrescribedDisplacement("boundary", lambda x: x @ (Fu - np.eye(3)).T)], [1.0],
+                        progress=False)[-1]
+        assert res.drucker_unstable_fraction["muscle"] == pytest.approx(expect)
+        warned = [x for x in w if issubclass(x.category, UnstableMaterialWarning) and "muscle" in str(x.message)]
+        assert bool(warned) == bool(expect)

@@ -48,6 +48,30 @@ def built(request, tmp_path_factory):
     return g, info, _read(path)
 
 
+def test_tetrahedra_estimate_is_within_2x_of_gmsh(built):
+    """The pre-meshing estimate (size field integrated over the solid, regular tetrahedra) against the
+    count gmsh makes: within a factor 2 (measured 0.8-1.8 over five size sets, docs/needle_model.md)."""
+    g, info, _ = built
+    assert 0.5 < info.tetrahedra / g.estimate_tetrahedra() < 2.0
+
+
+def test_a_mesh_that_would_run_for_ever_is_refused_with_its_estimate(monkeypatch):
+    """`--mesh-size 0.02` used to mesh for ever: refused before gmsh starts, naming the field, the estimate
+    and the limit; an explicit max_tetrahedra admits it. The estimate scales as 1/h^3 where h dominates."""
+    import gmsh
+
+    monkeypatch.setattr(gmsh, "initialize", lambda *a, **k: pytest.fail("gmsh started"))
+    with pytest.raises(InputError, match=r"tetrahedra estimated.*limit of 3,000,000") as exc:
+        NeedleGeometry(mesh_size=0.02)
+    assert exc.value.field == "mesh_size"
+    with pytest.raises(InputError) as exc:
+        NeedleGeometry(needle_mesh_size=0.05)
+    assert exc.value.field == "needle_mesh_size"
+    big = NeedleGeometry(mesh_size=0.02, max_tetrahedra=10**12).estimate_tetrahedra()
+    half = NeedleGeometry(mesh_size=0.04, max_tetrahedra=10**12).estimate_tetrahedra()
+    assert big / half == pytest.approx(8.0, rel=0.05)  # the near zone dominates: n ~ 1/h^3
+
+
 def test_named_groups_present(built):
     g, info, (pts, tets, reg, tris) = built
     expected = [r for r in REGIONS if g.needles == 2 or r != "needle_2"]

@@ -77,3 +77,59 @@ def test_labels_on_another_grid(phantom_ct, tmp_path):
     sitk.WriteImage(lab, str(p))
     with pytest.raises(InputError, match="shifted_labels.nii.gz.*another grid"):
         read_labels(p, reference=read_ct(phantom_ct))
+
+
+@pytest.fixture
+def ct_files(tmp_path):
+    hu, _ = phantom_arrays((12, 48, 48))
+    img = sitk.Cast(to_image(hu), sitk.sitkInt16)
+    gz, raw = tmp_path / "ct.nii.gz", tmp_path / "ct.nii"
+    sitk.WriteImage(img, str(gz), useCompression=True)
+    sitk.WriteImage(img, str(raw))
+    return hu, gz, raw
+
+
+def test_truncated_or_cut_short_files_are_refused_naming_the_file(ct_files, tmp_path):
+    """ITK read both silently (missing voxels as 0): the gzip stream is read to its end and the voxel
+    bytes counted against the header."""
+    hu, gz, raw = ct_files
+    assert read_ct(gz).GetSize() == read_ct(raw).GetSize() == hu.shape[::-1]  # intact files still read
+    cut_gz, cut_raw = tmp_path / "cut.nii.gz", tmp_path / "short.nii"
+    cut_gz.write_bytes(gz.read_bytes()[:-100])
+    cut_raw.write_bytes(raw.read_bytes()[: raw.stat().st_size - 2 * 48 * 48])  # one slice short
+    with pytest.raises(InputError, match=r"cut.nii.gz: damaged or truncated") as exc:
+        read_ct(cut_gz)
+    assert exc.value.field == "CT"
+    with pytest.raises(InputError, match=rf"short.nii: truncated: {raw.stat().st_size - 2 * 48 * 48:,} bytes "
+                                         rf"of the {raw.stat().st_size:,}"):
+        read_ct(cut_raw)
+    from needletissue.geometry.pelvis import ct_label_volume
+
+    with pytest.raises(InputError, match="cut.nii.gz: damaged or truncated"):
+        ct_label_volume(cut_gz, raw)
+
+
+@pytest.mark.parametrize("suffix", [".nii.gz", ".nrrd"])
+def test_non_finite_voxels_are_refused(tmp_path, suffix):
+    """SimpleITK's NIfTI reader turns NaN into 0 (so a NaN CT segmented silently): counted on the raw data."""
+    hu, _ = phantom_arrays((12, 48, 48))
+    a = hu.astype(np.float32)
+    a[3, 10, 10], a[4, 20, 20] = np.nan, np.inf
+    path = tmp_path / f"nan{suffix}"
+    sitk.WriteImage(to_image(a), str(path))
+    with pytest.raises(InputError, match=r"nan\.(nii\.gz|nrrd).*2 .*voxels are NaN or infinite"):
+        read_ct(path)
+
+
+def test_segment_cli_on_a_truncated_ct_writes_nothing(ct_files, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    _, gz, _ = ct_files
+    cut = tmp_path / "cut.nii.gz"
+    cut.write_bytes(gz.read_bytes()[: gz.stat().st_size // 2])
+    r = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", "segment", str(cut),
+                        "--out", str(tmp_path / "seg")], capture_output=True, text=True, env=dict(os.environ))
+    assert r.returncode == 2 and r.stderr.startswith("error: CT: ") and "cut.nii.gz" in r.stderr, r.stderr
+    assert not (tmp_path / "seg").exists()

@@ -130,3 +130,32 @@ def test_bad_cli_input_is_one_line_exit_2():
     p = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", "fe", "needle",
                         "--force", "-100"], capture_output=True, text=True)
     assert p.returncode == 2 and "forces" in p.stderr
+
+
+def test_written_config_is_accepted_back(cli_run, monkeypatch):
+    """The config.toml `fe needle --out` writes is what `fe needle --config` runs again (round trip);
+    options typed on the command line override the file, defaults do not."""
+    import needletissue.models.needle as needle_pkg
+    from needletissue.commands.fe_needle import load_config
+
+    _, out = cli_run
+    cfg, contact = load_config(out / "config.toml")
+    assert cfg == NeedleModelConfig(geometry=NeedleGeometry(**COARSE), forces=(F_SMALL, 2 * F_SMALL))
+    assert contact == {}
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_run(config, out_dir=None, **hooks):
+        seen.append(config)
+        raise Stop
+
+    monkeypatch.setattr(needle_pkg, "run_needle_model", fake_run)
+    res = CliRunner().invoke(app, ["fe", "needle", "--config", str(out / "config.toml"), "--json"])
+    assert isinstance(res.exception, Stop) and seen[-1] == cfg
+    res = CliRunner().invoke(app, ["fe", "needle", "--config", str(out / "config.toml"), "--mesh-size", "9",
+                                   "--force", "5"])
+    assert isinstance(res.exception, Stop)
+    assert seen[-1].geometry.mesh_size == 9.0 and seen[-1].forces == (5.0,)
+    assert seen[-1].geometry.needle_mesh_size == COARSE["needle_mesh_size"]  # from the file, not the default

@@ -186,6 +186,8 @@ def test_coarse_solve_equilibrium_and_monotone(tmp_path):
     deformation grows with the force, and the needle ends move more than the tissue."""
     from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
+    from needletissue.models.pelvis.model import MATERIALS as gp_materials
+
     cfg = PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[50.0, 100.0],
                        out=str(tmp_path), figures=False, crosscheck_thickness=False)
     res = run_pelvis_model(cfg)
@@ -200,6 +202,31 @@ def test_coarse_solve_equilibrium_and_monotone(tmp_path):
     R = np.sum([np.asarray(v) for v in data["results"][-1]["reactions_N"].values()], axis=0)
     F = 100.0 * np.asarray(data["force_vector_unit"])
     assert np.linalg.norm(R + F) < 0.01 * 100.0, (R, F)
+    # relocatable: no absolute path into the folder; the figures rebuild from a moved copy
+    import shutil
+
+    for name in ("pelvis_results.json", "results.json", "config.toml"):
+        assert str(tmp_path) not in (tmp_path / name).read_text(encoding="utf-8"), name
+    assert data["results"][-1]["vtu"] == "pelvis_100N.vtu"
+    # ParaView: the series, and one numbering of the regions in the mesh and the result files
+    import meshio
+
+    assert 'timestep="100.0" part="0" file="pelvis_100N.vtu"' in (tmp_path / "pelvis.pvd").read_text(encoding="utf-8")
+    res_vtu, mesh_vtu = meshio.read(tmp_path / "pelvis_100N.vtu"), meshio.read(tmp_path / "pelvis_mesh.vtu")
+    tags = data["mesh"]["region_tags"]
+    assert {f"region {i} = {r} (material {gp_materials[r]})" for r, i in tags.items()} <= set(res_vtu.field_data)
+    counts = np.bincount(mesh_vtu.cell_data["region"][0], minlength=len(tags))
+    assert counts.tolist() == np.bincount(res_vtu.cell_data["region"][0], minlength=len(tags)).tolist()
+    assert set(data["results"][-1]["drucker_unstable_volume_fraction"]) <= set(tags)
+    moved = tmp_path.parent / (tmp_path.name + "_moved")
+    shutil.copytree(tmp_path, moved)
+    shutil.rmtree(tmp_path)
+    env = dict(os.environ, PYVISTA_OFF_SCREEN="true", MPLBACKEND="Agg")  # VTK renders in a child process
+    r = subprocess.run([sys.executable, "-c", "import sys; from needletissue.models.pelvis.report import "
+                        "figures_from_files; print(figures_from_files(sys.argv[1]))", str(moved)],
+                       capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stderr
+    assert (moved / "pelvis_needle_vs_force.png").is_file() and (moved / "pelvis_deformation.png").is_file()
 
 
 @pytest.mark.parametrize("args, field", [(["--force", "-1"], "force"), (["--order", "3"], "order"),
@@ -284,3 +311,39 @@ def test_needle_interfaces_in_contact_are_more_compliant(tmp_path):
     R = np.sum([np.asarray(v) for v in data["results"][0]["reactions_N"].values()], axis=0)
     F = 20.0 * np.asarray(data["force_vector_unit"])
     assert np.linalg.norm(R + F) < 0.01 * 20.0, (R, F)
+
+
+def test_written_config_is_accepted_back(tmp_path, monkeypatch):
+    """The config.toml `fe pelvis --out` writes (write_run_files of the PelvisConfig without `out`) is
+    accepted back by `fe pelvis --config`: the same config; command-line options override the file."""
+    from dataclasses import asdict
+
+    from typer.testing import CliRunner
+
+    import needletissue.models.pelvis as pelvis_pkg
+    from needletissue.cli import app
+    from needletissue.models.pelvis import PelvisConfig
+    from needletissue.runinfo import write_run_files
+
+    cfg = PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[50.0, 100.0], side="left",
+                       friction={"needle-muscle": 0.3}, contact_dhat=0.2, figures=False, out=str(tmp_path))
+    write_run_files(tmp_path, {k: v for k, v in asdict(cfg).items() if k != "out"}, {})
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_run(config):
+        seen.append(config)
+        raise Stop
+
+    monkeypatch.setattr(pelvis_pkg, "run_pelvis_model", fake_run)
+    res = CliRunner().invoke(app, ["fe", "pelvis", "--config", str(tmp_path / "config.toml"), "--out", str(tmp_path)])
+    assert isinstance(res.exception, Stop), res.output
+    assert asdict(seen[-1]) == {**asdict(cfg), "progress": True}
+    res = CliRunner().invoke(app, ["fe", "pelvis", "--config", str(tmp_path / "config.toml"), "--mesh-size", "5",
+                                   "--friction", "bone-needle=0.9", "--json"])
+    assert isinstance(res.exception, Stop), res.output
+    got = seen[-1]
+    assert got.mesh_size == 5.0 and got.needle_size == 3.0 and got.side == "left" and got.out is None
+    assert got.friction == {"needle-muscle": 0.3, "bone-needle": 0.9}

@@ -70,3 +70,17 @@ def test_cli_json_and_plot(tmp_path):
     assert {p.name for p in (tmp_path / "fig").iterdir()} >= {"m.png", "config.toml", "versions.json", "results.json"}
     bad = CliRunner().invoke(app, ["validate", "traction", "--material", "bone"])
     assert bad.exit_code != 0
+
+
+def test_a_failed_validation_exits_non_zero(tmp_path):
+    """Clamped ends on a squat block (40 mm wide, 10 mm high) bulge: the homogeneous closed form
+    does not hold, the RMSE is far above 0.05 MPa, and the command says so by its exit code too, after
+    writing and printing its results."""
+    from needletissue.cli import app
+
+    res = CliRunner().invoke(app, ["validate", "traction", "--material", "muscle", "--ends", "clamped",
+                                   "--height", "10", "--width", "40", "--elements", "2", "--points", "3",
+                                   "--json", "--out", str(tmp_path)])
+    data = json.loads(res.stdout)
+    assert data["passed"] is False and data["rmse_MPa"] > data["criterion_MPa"]
+    assert res.exit_code == 1 and (tmp_path / "results.json").is_file()

@@ -95,3 +95,109 @@ def test_isolated_stage_that_crashes_fails_alone(tmp_path):
     data = json.loads((out / "results.json").read_text(encoding="utf-8"))
     assert data["stages"]["crash"]["status"] == "failed" and "died" in data["stages"]["crash"]["reason"]
     assert data["stages"]["s"]["status"] == "ok" and not res.ok
+
+
+def test_result_folder_and_files_follow_the_umask(tmp_path):
+    import os
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        out = tmp_path / "res"
+        run_reproduce(load_config(), out, [Stage("s", "S", _writes(1.0), _always)], progress=False)
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o755
+    for name in ("report.html", "results.json", "config.toml", "versions.json", MARKER):
+        assert stat.S_IMODE((out / name).stat().st_mode) == 0o644, name
+
+
+def test_results_are_relocatable(tmp_path):
+    """No path to the temporary folder (or any absolute path inside the result) survives in the files."""
+    def stage(cfg, ctx):
+        d = ctx.stage_dir("s")
+        (d / "x.vtu").write_text("v")
+        return StageResult({"vtu": str(d / "x.vtu"), "nested": [{"file": str(d / "x.vtu")}]}, files=[d / "x.vtu"])
+
+    out = tmp_path / "res"
+    run_reproduce(load_config(), out, [Stage("s", "S", stage, _always)], progress=False)
+    for f in out.rglob("*"):
+        if f.suffix in (".json", ".toml", ".html"):
+            assert str(tmp_path) not in f.read_text(encoding="utf-8"), f
+    data = json.loads((out / "results.json").read_text(encoding="utf-8"))["stages"]["s"]
+    assert data["result"]["vtu"] == "s/x.vtu" == data["files"][0] and (out / data["result"]["vtu"]).is_file()
+
+
+SLOW_STAGE = '''
+import os, time
+
+def run(cfg, ctx):
+    d = ctx.stage_dir("slow")
+    (ctx.run_dir.parent / "worker.pid").write_text(str(os.getpid()))
+    for i in range(600):
+        (d / "tick.txt").write_text(str(i))
+        time.sleep(0.1)
+'''
+
+DRIVER = '''
+import sys
+sys.path.insert(0, sys.argv[1])
+from slowstage import run
+from needletissue.report.config import load_config
+from needletissue.report.pipeline import Stage, run_reproduce
+run_reproduce(load_config(), sys.argv[2], [Stage("slow", "Slow", run, lambda c, x: (True, ""), isolated=True)],
+              progress=False)
+'''
+
+
+@pytest.mark.parametrize("sig, code", [("SIGTERM", 143), ("SIGINT", None)])
+def test_signal_stops_workers_removes_temp_folder_and_exits_non_zero(tmp_path, sig, code):
+    """Before: SIGTERM left the hidden temp folder and a worker computing on for 30 s."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    (tmp_path / "slowstage.py").write_text(SLOW_STAGE)
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    out = runs / "res"
+    p = subprocess.Popen([sys.executable, "-c", DRIVER, str(tmp_path), str(out)], stderr=subprocess.PIPE, text=True)
+    pid_file = runs / "worker.pid"
+    t0 = time.time()
+    while not pid_file.exists() or not pid_file.read_text():
+        assert p.poll() is None and time.time() - t0 < 60, p.stderr.read() if p.poll() is not None else "slow start"
+        time.sleep(0.1)
+    worker = int(pid_file.read_text())
+    p.send_signal(getattr(signal, sig))
+    rc = p.wait(timeout=30)
+    assert rc != 0 and (code is None or rc == code), rc
+    for _ in range(50):  # the worker is gone (terminated and reaped, not orphaned)
+        try:
+            os.kill(worker, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        os.kill(worker, signal.SIGKILL)
+        pytest.fail("the worker process survived")
+    assert sorted(x.name for x in runs.iterdir()) == ["worker.pid"]  # no result, no hidden temp folder
+
+
+@pytest.mark.parametrize("where", ["proc", "under_file"])
+def test_unwritable_out_is_refused_before_any_stage(tmp_path, where):
+    (tmp_path / "f").write_text("x")
+    out = {"proc": "/proc/needletissue-test/res", "under_file": tmp_path / "f" / "res"}[where]
+    with pytest.raises(InputError) as e:
+        run_reproduce(load_config(), out, [Stage("a", "A", _broken, _always)], progress=False)
+    assert e.value.field == "--out" and sorted(p.name for p in tmp_path.iterdir()) == ["f"]
+
+
+def test_verdicts_state_their_tolerance():
+    """agrees within 5 % of the paper's value, differs beyond (with the signed difference), a criterion
+    row is read against its limit, a row without a like-for-like paper value has no verdict."""
+    assert Comparison("q", 17.7, "mm", "ritz_tip_deflection_300N_mm").verdict == "agrees (within 5 %)"
+    assert Comparison("q", 25.13, "mm", "ritz_tip_deflection_300N_mm").verdict == "differs (+43 %, tolerance 5 %)"
+    assert Comparison("q", 0.01, "MPa", "traction_rmse_muscle_MPa", limit=0.05).verdict.startswith("meets")
+    assert Comparison("q", 25.13, "mm", None).verdict == ""

@@ -21,7 +21,10 @@ def test_ritz_and_materials_stages(tmp_path):
     data = json.loads((out / "results.json").read_text(encoding="utf-8"))
     assert data["stages"]["traction"]["status"] == "skipped"
     direct = ritz.solve_forces([300.0], ritz_model(cfg), order=cfg.ritz.order)[0]
-    row = next(c for c in data["comparison_with_paper"] if c["quantity"] == "Ritz tip deflection at 300 N")
+    row = next(c for c in data["comparison_with_paper"] if c["quantity"].startswith("Ritz tip deflection at 300 N ("))
+    # labelled with what it is (like for like with the paper's Ritz number), and read against it
+    assert "1 needle carrying the force, free length 84.18 mm" in row["quantity"]
+    assert row["verdict"] == "agrees (within 5 %)"
     assert row["ours"] == pytest.approx(direct.tip_deflection_mm, rel=1e-12)
     assert row["paper"] == 17.63 and row["difference"] == pytest.approx(direct.tip_deflection_mm - 17.63)
     for name in ("materials", "ritz"):

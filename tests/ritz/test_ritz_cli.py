@@ -15,7 +15,8 @@ from needletissue.cli import app
 from needletissue.errors import InputError
 
 RESULT_KEYS = {"force_N", "tip_deflection_mm", "load_point_deflection_mm", "max_deflection_mm",
-               "tip_slope_rad", "coefficients", "order", "iterations", "converged", "error_estimate_mm"}
+               "tip_slope_rad", "coefficients", "order", "iterations", "converged", "order_converged",
+               "newton_converged", "error_estimate_mm", "deflection_to_free_length", "within_validity_range"}
 
 
 def _cli(*args):
@@ -135,3 +136,41 @@ def test_error_line_prints_the_message_verbatim(monkeypatch, capsys):
         main()
     err = capsys.readouterr().err
     assert e.value.code == 2 and f"'{text}'" in err and err.count("\n") == 1
+
+
+def test_order_convergence_is_not_read_as_a_failed_solve():
+    """The paper's cubic at 300 N: Newton converged, the order p = 3 is not (estimate 3.7e-3 mm > 1e-4):
+    JSON says which is which (`converged` kept as the old name), the table says Newton ok."""
+    r = CliRunner().invoke(app, ["ritz", "--force", "300", "--json"])
+    x = json.loads(r.output)["results"][0]
+    assert x["newton_converged"] is True
+    assert x["order_converged"] is x["converged"] is (x["error_estimate_mm"] <= 1e-4) is False
+    assert ritz.solve(300.0, ritz.RitzModel()).order_converged is False
+    t = CliRunner().invoke(app, ["ritz", "--force", "300"], env={"COLUMNS": "120"}).output
+    assert "Newton" in t and "ok (" in t and "p ok" in t and "the solve converged" in t
+
+
+def test_one_force_range_and_the_validity_range():
+    """|F| > 2000 N is refused by every model and command alike (one line naming --force, exit 2, nothing
+    written); within it, a Ritz answer beyond |v|max / l = 0.25 (small rotations) comes with a warning."""
+    from needletissue.errors import FORCE_LIMIT_N
+    from needletissue.models.needle import NeedleModelConfig
+    from needletissue.models.pelvis import PelvisConfig
+    from needletissue.report.config import load_config
+
+    for args in (["ritz", "--force", "1e6"], ["fe", "needle", "--force", "2500"], ["fe", "pelvis", "--force", "3000"]):
+        r = _cli(*args)
+        assert r.returncode == 2 and r.stderr.startswith("error: ") and "force" in r.stderr, r.stderr
+        assert f"{FORCE_LIMIT_N:g} N" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    for make in (lambda: NeedleModelConfig(forces=(2001.0,)), lambda: PelvisConfig(forces=[2001.0])):
+        with pytest.raises(InputError, match="2000 N"):
+            make()
+    with pytest.raises(InputError, match="2000"):
+        load_config(overrides={"ritz": {"forces_N": [2001.0]}})
+    for args in (["ritz", "--help"], ["fe", "needle", "--help"], ["fe", "pelvis", "--help"]):
+        assert "2000 N" in CliRunner().invoke(app, args, env={"COLUMNS": "200"}).output
+    r = _cli("ritz", "--force", "300", "--force", "500", "--json")
+    x = {v["force_N"]: v for v in json.loads(r.stdout)["results"]}
+    assert x[300.0]["within_validity_range"] and not x[500.0]["within_validity_range"]
+    assert x[500.0]["deflection_to_free_length"] == pytest.approx(x[500.0]["max_deflection_mm"] / 84.18)
+    assert r.returncode == 0 and r.stderr.startswith("warning: --force 500 N") and "0.25" in r.stderr

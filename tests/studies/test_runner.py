@@ -176,3 +176,55 @@ def test_nonphysical_or_unknown_parameter_fails_before_computing(tmp_path, snipp
                        text=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
     assert r.returncode == 2 and field in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "o").exists()
+
+
+GRID = """
+[study]
+name = "g"
+model = "ritz"
+method = "grid"
+
+[parameters.force_N]
+values = [100.0, {value}]
+"""
+
+
+def _cli_study(tmp_path, config, *args):
+    return subprocess.run([*CLI, "study", "--config", str(config), "--quiet", *args], capture_output=True,
+                          text=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}, timeout=120)
+
+
+@pytest.mark.parametrize("where", ["file", "under_file", "proc"])
+def test_unwritable_out_is_refused_and_nothing_is_written(tmp_path, where):
+    """--out an existing file, under a file, or where no folder can be made (/proc: read-only even for
+    root, who ignores permission bits): an InputError naming --out, nothing written; the CLI once."""
+    cfg = load_study(_write(tmp_path, GRID.format(value=200.0)))
+    (tmp_path / "a_file").write_text("keep")
+    out = {"file": tmp_path / "a_file", "under_file": tmp_path / "a_file" / "o",
+           "proc": "/proc/needletissue-test/o"}[where]
+    before = sorted(p.name for p in tmp_path.iterdir())
+    with pytest.raises(InputError) as e:
+        run_study(cfg, out, serial=True, progress=False)
+    assert e.value.field == "--out"
+    assert sorted(p.name for p in tmp_path.iterdir()) == before and (tmp_path / "a_file").read_text() == "keep"
+    if where == "proc":
+        r = _cli_study(tmp_path, tmp_path / "s.toml", "--out", str(out), "--serial")
+        assert r.returncode == 2 and r.stderr.startswith("error: --out: "), r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_non_finite_grid_value_is_refused_before_anything(tmp_path, value):
+    with pytest.raises(InputError) as e:
+        load_study(_write(tmp_path, GRID.format(value=value)))
+    assert e.value.field == "parameters.force_N.values.1" and "finite" in str(e.value)
+
+
+@pytest.mark.parametrize("address", ["nonsense://x:1", pytest.param("tcp://127.0.0.1:1", marks=pytest.mark.slow)])
+def test_unreachable_scheduler_is_one_line_and_nothing_is_written(tmp_path, address):
+    """Before: a traceback after cases.parquet and study.json were written (the slow case waits out the
+    10 s connect timeout)."""
+    r = _cli_study(tmp_path, _write(tmp_path, GRID.format(value=200.0)), "--out", str(tmp_path / "o"),
+                   "--scheduler", address)
+    assert r.returncode == 2 and r.stderr.startswith("error: --scheduler: ") and address in r.stderr, r.stderr
+    assert not (tmp_path / "o").exists()

@@ -8,6 +8,8 @@ from typing import List, Optional
 
 import typer
 
+from needletissue.errors import FORCE_RANGE_HELP
+
 
 def register(app: typer.Typer, groups) -> None:
     from needletissue.geometry.needle import NeedleGeometry
@@ -16,8 +18,10 @@ def register(app: typer.Typer, groups) -> None:
 
     @groups.fe.command("needle")
     def needle(
-        force: Optional[List[float]] = typer.Option(None, "--force", help="Reduction force, N (> 0; repeat; "
-                                                    "default 100 200 300), uniform over the gripper."),
+        ctx: typer.Context,
+        force: Optional[List[float]] = typer.Option(None, "--force", help="Reduction force, N (repeat; "
+                                                    "default 100 200 300), uniform over the gripper; "
+                                                    f"{FORCE_RANGE_HELP}."),
         needles: int = typer.Option(d.needles, "--needles", help="Number of needles: 1 or 2."),
         diameter: float = typer.Option(d.diameter, "--diameter", help="Needle diameter d, mm (> 0)."),
         free_length: float = typer.Option(d.free_length, "--free-length",
@@ -31,6 +35,10 @@ def register(app: typer.Typer, groups) -> None:
                                                help="Element size on the needles, mm (<= diameter)."),
         far_mesh_size: float = typer.Option(d.far_mesh_size, "--far-mesh-size",
                                             help="Element size at the far boundary, mm (>= mesh size)."),
+        max_tetrahedra: int = typer.Option(d.max_tetrahedra, "--max-tetrahedra",
+                                           help="Refuse, before meshing, a mesh estimated above this many "
+                                                "tetrahedra (the estimate is within 2x of gmsh's count); "
+                                                "raise it to run a finer mesh on purpose."),
         direction: str = typer.Option("0,1,0", "--direction",
                                       help="Force direction x,y,z (normalised; default y: lateral, "
                                            "perpendicular to the needles and their plane)."),
@@ -51,34 +59,57 @@ def register(app: typer.Typer, groups) -> None:
         contact_eps_v: Optional[float] = typer.Option(None, "--contact-eps-v", help="Friction smoothing, mm of "
                                                       "slip per load increment (> 0; default 0.001) below which "
                                                       "an interface sticks."),
+        config_file: Optional[Path] = typer.Option(None, "--config", help="config.toml of an earlier `fe needle "
+                                                   "--out` run ([needle_model], [contact]; units mm, N): runs "
+                                                   "it again; options given on the command line override it."),
     ):
         """Solve the needle-tissue-bone model at each force; report needle, clamp and tissue deformation
         and the Rayleigh-Ritz comparison. Units: mm, N, MPa."""
+        from dataclasses import replace
+
         from needletissue.errors import InputError
         from needletissue.models.needle import NeedleModelConfig, run_needle_model
 
-        try:
-            dvec = tuple(float(x) for x in direction.split(","))
-        except ValueError:
-            raise InputError("--direction", f"expected three numbers x,y,z, got {direction!r}") from None
-        if len(dvec) != 3:
-            raise InputError("--direction", f"expected three numbers x,y,z, got {direction!r}")
-        geometry = NeedleGeometry(needles=needles, diameter=diameter, free_length=free_length, spacing=spacing,
-                                  depth=depth, mesh_size=mesh_size, needle_mesh_size=needle_mesh_size,
-                                  far_mesh_size=far_mesh_size)
-        cfg = NeedleModelConfig(geometry=geometry, forces=tuple(force or (100.0, 200.0, 300.0)), direction=dvec,
-                                order=order, ritz=not no_ritz, progress=not json_out)
+        if config_file is not None:
+            base, contact = load_config(config_file)
+            from needletissue.commands import from_command_line
+
+            given = set(from_command_line(ctx))
+        else:
+            base, contact, given = NeedleModelConfig(), {}, set(ctx.params)
+        p = ctx.params
+        changes = {}
+        if "direction" in given:
+            try:
+                dvec = tuple(float(x) for x in direction.split(","))
+            except ValueError:
+                raise InputError("--direction", f"expected three numbers x,y,z, got {direction!r}") from None
+            if len(dvec) != 3:
+                raise InputError("--direction", f"expected three numbers x,y,z, got {direction!r}")
+            changes["direction"] = dvec
+        geometry = replace(base.geometry, **{n: p[n] for n in _GEOMETRY_OPTIONS if n in given})
+        if force:
+            changes["forces"] = tuple(force)
+        if "order" in given:
+            changes["order"] = order
+        if "no_ritz" in given:
+            changes["ritz"] = not no_ritz
+        cfg = replace(base, geometry=geometry, progress=not json_out, **changes)
+        interfaces = interfaces if "interfaces" in given else contact.get("interfaces", "bonded")
+        pairs = {**contact.get("friction", {}), **parse_friction(friction or [])}
+        contact_dhat = contact_dhat if contact_dhat is not None else contact.get("dhat_mm")
+        contact_eps_v = contact_eps_v if contact_eps_v is not None else contact.get("eps_v_mm")
         hooks = {}
-        if interfaces != "bonded" or friction:
-            from needletissue.fem.contact import ContactSettings, parse_friction
+        if interfaces != "bonded" or pairs:
+            from needletissue.fem.contact import ContactSettings
             from needletissue.models.contact import NeedleContact
 
             from needletissue.errors import check_number
 
-            given = {k: check_number(f"--contact-{k.replace('_', '-')}", v, gt=0)
-                     for k, v in (("dhat", contact_dhat), ("eps_v", contact_eps_v)) if v is not None}
-            settings = ContactSettings(**given)
-            hooks = NeedleContact(interfaces, parse_friction(friction or []), settings).hooks()
+            given_settings = {k: check_number(f"--contact-{k.replace('_', '-')}", v, gt=0)
+                              for k, v in (("dhat", contact_dhat), ("eps_v", contact_eps_v)) if v is not None}
+            settings = ContactSettings(**given_settings)
+            hooks = NeedleContact(interfaces, pairs, settings).hooks()
         result = run_needle_model(cfg, out, **hooks)
         if json_out:
             from needletissue.runinfo import to_jsonable
@@ -86,6 +117,35 @@ def register(app: typer.Typer, groups) -> None:
             print(json.dumps(to_jsonable(result.to_dict()), indent=2))
             return
         _table(result, out)
+
+
+_GEOMETRY_OPTIONS = ("needles", "diameter", "free_length", "spacing", "depth", "mesh_size", "needle_mesh_size",
+                     "far_mesh_size", "max_tetrahedra")
+_CONTACT_KEYS = ("interfaces", "friction", "dhat_mm", "eps_v_mm")
+
+
+def parse_friction(items):
+    from needletissue.fem.contact import parse_friction as parse
+
+    return parse(items)
+
+
+def load_config(path):
+    """A config.toml written by `fe needle --out` -> (NeedleModelConfig, contact table)."""
+    from needletissue.errors import InputError
+    from needletissue.models.needle import NeedleModelConfig
+    from needletissue.runinfo import dataclass_from, read_toml
+
+    data = read_toml(path)
+    for key in data:
+        if key not in ("needle_model", "contact"):
+            raise InputError(f"{path}: {key}", "unknown table; allowed: [needle_model], [contact]")
+    cfg = dataclass_from(NeedleModelConfig, data.get("needle_model", {}), f"{path}: needle_model")
+    contact = data.get("contact", {})
+    bad = sorted(set(contact) - set(_CONTACT_KEYS))
+    if bad:
+        raise InputError(f"{path}: contact.{bad[0]}", f"unknown field; allowed: {', '.join(_CONTACT_KEYS)}")
+    return cfg, contact
 
 
 def _table(result, out) -> None:

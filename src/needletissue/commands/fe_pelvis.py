@@ -6,14 +6,18 @@ from pathlib import Path
 
 import typer
 
+from needletissue.errors import FORCE_RANGE_HELP
+
 
 def register(app, groups) -> None:
     @groups.fe.command("pelvis")
     def pelvis(
+        ctx: typer.Context,
         ct: Path = typer.Option(None, "--ct", help="CT volume (NIfTI, HU). Default: the example CT in the data folder."),
         labels: Path = typer.Option(None, "--labels", help="Label map on the CT grid (TotalSegmentator ids)."),
         ssm: bool = typer.Option(False, "--ssm", help="Use the mean SSM bone surfaces (soft tissue by offsetting)."),
-        force: list[float] = typer.Option(None, "--force", help="Reduction force on the clamp, N (repeat)."),
+        force: list[float] = typer.Option(None, "--force", help="Reduction force on the clamp, N (repeat; "
+                                          f"{FORCE_RANGE_HELP})."),
         force_direction: str = typer.Option("0,0,-1", "--force-direction",
                                             help="Force direction x,y,z (patient RAS; made transverse to the needles)."),
         site: str = typer.Option("supra_acetabular", "--site", help="supra_acetabular or iliac_crest."),
@@ -39,35 +43,57 @@ def register(app, groups) -> None:
         contact_eps_v: float = typer.Option(None, "--contact-eps-v",
                                             help="Friction smoothing: slip per load increment below which an "
                                                  "interface sticks, mm (> 0; default 0.001)."),
+        config_file: Path = typer.Option(None, "--config", help="config.toml of an earlier `fe pelvis --out` "
+                                         "run (PelvisConfig fields; units mm, N): runs it again; options given "
+                                         "on the command line override it."),
     ):
         """Hemipelvis from CT (or SSM) with two needles and a clamp; max needle and tissue deformation,
         ranking, thickness along the needles and the Ritz comparison. Units mm, N."""
         import json
+        from dataclasses import asdict
 
         from needletissue.errors import InputError
         from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
+        kw, given = {}, set(ctx.params)
+        if config_file is not None:
+            from needletissue.commands import from_command_line
+            from needletissue.runinfo import dataclass_from, read_toml
+
+            kw = asdict(dataclass_from(PelvisConfig, read_toml(config_file), str(config_file)))
+            kw.pop("out"), kw.pop("progress")  # where to write and how to show it: this run's options
+            given = set(from_command_line(ctx))
         if ssm and (ct is not None or labels is not None):
             raise InputError("--ssm", "give either --ssm or --ct/--labels, not both")
-        if (ct is None) != (labels is None):
-            raise InputError("--ct/--labels", "give both --ct and --labels (or neither for the example CT)")
-        try:
-            fdir = [float(x) for x in force_direction.split(",")]
-        except ValueError:
-            raise InputError("--force-direction", f"expected x,y,z numbers, got {force_direction!r}") from None
-        if len(fdir) != 3:
-            raise InputError("--force-direction", f"expected three numbers x,y,z, got {force_direction!r}")
+        if "force_direction" in given:
+            try:
+                fdir = [float(x) for x in force_direction.split(",")]
+            except ValueError:
+                raise InputError("--force-direction", f"expected x,y,z numbers, got {force_direction!r}") from None
+            if len(fdir) != 3:
+                raise InputError("--force-direction", f"expected three numbers x,y,z, got {force_direction!r}")
+            kw["force_direction"] = fdir
         from needletissue.fem.contact import parse_friction
 
-        config = PelvisConfig(
-            source="ssm" if ssm else "ct", ct=str(ct) if ct else None, labels=str(labels) if labels else None,
-            side=side, site=site, forces=list(force) if force else [100.0, 200.0, 300.0], force_direction=fdir,
-            mesh_size=mesh_size, needle_size=needle_size, far_size=far_size, order=order,
-            needle_diameter=needle_diameter, si_joint=si_joint,
-            out=str(out) if out else None, progress=not json_out,
-            interfaces=interfaces, friction=parse_friction(friction or []), contact_dhat=contact_dhat,
-            contact_eps_v=contact_eps_v,
-        )
+        cli = {"ssm": ("source", "ssm" if ssm else "ct"), "ct": ("ct", str(ct) if ct else None),
+               "labels": ("labels", str(labels) if labels else None), "site": ("site", site),
+               "side": ("side", side), "mesh_size": ("mesh_size", mesh_size),
+               "needle_size": ("needle_size", needle_size), "far_size": ("far_size", far_size),
+               "order": ("order", order), "needle_diameter": ("needle_diameter", needle_diameter),
+               "si_joint": ("si_joint", si_joint), "interfaces": ("interfaces", interfaces),
+               "contact_dhat": ("contact_dhat", contact_dhat), "contact_eps_v": ("contact_eps_v", contact_eps_v)}
+        kw.update(v for k, v in cli.items() if k in given)
+        if ssm or ct is not None:  # a source given on the command line replaces the file's
+            kw["source"] = "ssm" if ssm else "ct"
+            if ssm:
+                kw["ct"] = kw["labels"] = None
+        if force:
+            kw["forces"] = list(force)
+        kw.setdefault("forces", [100.0, 200.0, 300.0])
+        kw["friction"] = {**kw.get("friction", {}), **parse_friction(friction or [])}
+        if kw.get("source", "ct") == "ct" and (kw.get("ct") is None) != (kw.get("labels") is None):
+            raise InputError("--ct/--labels", "give both --ct and --labels (or neither for the example CT)")
+        config = PelvisConfig(**kw, out=str(out) if out else None, progress=not json_out)
         res = run_pelvis_model(config)
         d = res.to_dict()
         if json_out:

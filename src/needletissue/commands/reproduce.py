@@ -55,7 +55,15 @@ def register(app: typer.Typer, groups) -> None:
         for name, p in (("--ct", ct), ("--labels", labels)):
             if p is not None and not p.exists():
                 raise InputError(name, f"no such file or folder: {p}")
-        res = run_reproduce(cfg, out, stage_list(), ct=ct, labels=labels, progress=not quiet)
+        import sys
+
+        try:
+            res = run_reproduce(cfg, out, stage_list(), ct=ct, labels=labels, progress=not quiet)
+        except (KeyboardInterrupt, SystemExit) as exc:  # SIGINT / SIGTERM (pipeline._StopOnSignals)
+            code = exc.code if isinstance(exc, SystemExit) else 130
+            Console(stderr=True).print(f"[red]error:[/red] reproduce interrupted: workers stopped, temporary "
+                                       f"folder removed, {out} left as it was", soft_wrap=True)
+            sys.exit(code if isinstance(code, int) else 1)
         con = Console()
         con.print(f"wrote {res.out_dir} ({res.wall_time_s:.1f} s): report.html, results.json, config.toml, "
                   "versions.json")

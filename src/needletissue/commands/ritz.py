@@ -8,7 +8,8 @@ from typing import List, Optional
 
 import typer
 
-from needletissue.errors import InputError
+from needletissue.errors import FORCE_RANGE_HELP, InputError
+from needletissue.ritz.model import MAX_DEFLECTION_RATIO
 
 
 def _model(diameter, free_length, load_point, youngs_modulus, layer, no_cos):
@@ -56,7 +57,10 @@ def register(app: typer.Typer, groups) -> None:
     def ritz(
         ctx: typer.Context,
         force: Optional[List[float]] = typer.Option(None, "--force", help="Reduction force F, N (repeat; "
-                                                    "negative = opposite direction)."),
+                                                    f"negative = opposite direction; {FORCE_RANGE_HELP}). "
+                                                    "The model is valid while |v|max / l <= "
+                                                    f"{MAX_DEFLECTION_RATIO:g} (small rotations): beyond, "
+                                                    "a warning."),
         diameter: float = o["diameter"],
         free_length: float = o["free_length"],
         load_point: Optional[float] = o["load_point"],
@@ -75,10 +79,21 @@ def register(app: typer.Typer, groups) -> None:
             raise InputError("--force", "give at least one --force in N (e.g. --force 100 --force 300)")
         from needletissue.ritz import DEFAULT_TOL_MM, parse_order, solve_forces
 
+        from needletissue.errors import check_force
+
+        force = [check_force("--force", f, signed=True) for f in force]
         model = _model(diameter, free_length, load_point, youngs_modulus, layer, no_cos)
         parse_order(order)
         results = solve_forces(force, model, order=order)
         out = {"model": _model_json(model, order, DEFAULT_TOL_MM), "results": [r.to_json() for r in results]}
+        beyond = [r for r in results if not r.within_validity]
+        if beyond:
+            import sys
+
+            r = max(beyond, key=lambda r: r.deflection_ratio)
+            print(f"warning: --force {', '.join(f'{b.force_N:g}' for b in beyond)} N: |v|max / l up to "
+                  f"{r.deflection_ratio:.2f} > {MAX_DEFLECTION_RATIO:g}, beyond the Ritz model's small-rotation "
+                  "range (docs/ritz.md); use the FE model (fe needle) there", file=sys.stderr)
         if plot is not None:
             from needletissue.ritz.plot import plot_deflection
             from needletissue.runinfo import write_run_files
@@ -144,10 +159,18 @@ def _table(out):
     t = Table(title=f"Ritz needle: d={m['diameter_mm']:g} mm, l={m['free_length_mm']:g} mm, "
               f"z3={m['load_point_mm']:g} mm, E={m['youngs_modulus_MPa']:g} MPa; {layers}; "
               f"cos term {'on' if m['cos_term'] else 'off'}")
-    for col in ("F N", "tip mm", "load mm", "max mm", "slope rad", "p", "it", "err mm", "conv"):
+    # "Newton" is the solve (always ok, with its iterations: it raises otherwise); "p ok" is the
+    # trial-function order: does raising p change v(z) by less than the tolerance?
+    for col in ("F N", "tip mm", "load mm", "max mm", "slope rad", "p", "Newton", "err mm", "p ok"):
         t.add_column(col, justify="right", no_wrap=True)
     for r in out["results"]:
         t.add_row(f"{r['force_N']:g}", f"{r['tip_deflection_mm']:.4f}", f"{r['load_point_deflection_mm']:.4f}",
                   f"{r['max_deflection_mm']:.4f}", f"{r['tip_slope_rad']:.4f}", str(r["order"]),
-                  str(r["iterations"]), f"{r['error_estimate_mm']:.1e}", "yes" if r["converged"] else "no")
-    Console().print(t)
+                  f"{'ok' if r['newton_converged'] else 'failed'} ({r['iterations']})",
+                  f"{r['error_estimate_mm']:.1e}", "yes" if r["order_converged"] else "no")
+    con = Console()
+    con.print(t)
+    if not all(r["order_converged"] for r in out["results"]):
+        tol = m.get("tol_mm")
+        con.print(f"p ok = no: the solve converged; raising the order p changes v(z) by err mm, more than "
+                  f"the tolerance{f' {tol:g} mm' if tol else ''} (--order auto raises p until it does not).")

@@ -31,7 +31,8 @@ def traction(
 ):
     """Pull a tissue block 0-10 mm and compare FE nominal stress with the incompressible closed form.
 
-    Stress in MPa, displacement in mm; RMSE as the paper's Eq. 16 (criterion < 0.05 MPa).
+    Stress in MPa, displacement in mm; RMSE as the paper's Eq. 16 (criterion < 0.05 MPa). Exit code 1
+    when the validation fails (results are still written and printed).
     """
     from rich.console import Console
     from rich.table import Table
@@ -56,6 +57,8 @@ def traction(
         import json
 
         print(json.dumps(to_jsonable(res.to_dict()), indent=2))
+        if not res.passed:
+            raise typer.Exit(1)
         return
     t = Table(title=f"{material}: traction validation (paper Eq. 16)")
     for col in ("displacement (mm)", "stretch", "FE nominal (MPa)", "theory (MPa)"):
@@ -66,3 +69,5 @@ def traction(
     c.print(t)
     verdict = "[green]pass[/green]" if res.passed else "[red]fail[/red]"
     c.print(f"RMSE {res.rmse_MPa:.3e} MPa (paper {res.paper_rmse_MPa} MPa, criterion < {res.criterion_MPa}): {verdict}")
+    if not res.passed:  # a failed validation is a failed command (scripts and CI must see it)
+        raise typer.Exit(1)

@@ -10,6 +10,9 @@ import numpy as np
 from needletissue.runinfo import to_jsonable, write_atomic
 
 
+FRAME_DEFAULT = "the mesh's coordinates, mm"
+
+
 @dataclass
 class FEResult:
     """Converged state at one requested load factor (never an unconverged one).
@@ -22,7 +25,12 @@ class FEResult:
     cutbacks                  : failed attempts that were halved
     wall_time_s               : since the start of the solve
     cell_data                 : per cell: von_mises_MPa (Cauchy), principal_stretches (3, ascending),
-                                region (int tag, names in `region_tags`)
+                                cauchy_stress_MPa and green_lagrange_strain (3x3 row-major, 9 columns),
+                                drucker_stable (1/0), region (int tag, names in `region_tags`); cell
+                                means over the quadrature points
+    materials                 : {region: material name}
+    drucker_unstable_fraction : {region: volume fraction of its cells whose principal stretches lie
+                                outside the law's Drucker-stable range} (hyperelastic tissues only)
     """
 
     load_factor: float
@@ -41,6 +49,43 @@ class FEResult:
     points: np.ndarray | None = field(default=None, repr=False)
     cells: np.ndarray | None = field(default=None, repr=False)
     cell_data: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    materials: dict[str, str] = field(default_factory=dict)
+    drucker_unstable_fraction: dict[str, float] = field(default_factory=dict)
+
+    def check_drucker(self, materials: dict[str, str]) -> "FEResult":
+        """Flag cells beyond their material's Drucker-stable range (materials.stability: the law's
+        incompressible log-strain Hessian at the cell's principal stretches); warn (UnstableMaterialWarning)
+        for every region with such cells. Fills drucker_unstable_fraction and cell_data["drucker_stable"]."""
+        import warnings
+
+        from needletissue.materials import closed_form as cf
+        from needletissue.materials import registry
+        from needletissue.materials.stability import UnstableMaterialWarning, drucker_margin
+
+        self.materials = dict(materials)
+        lam = self.cell_data.get("principal_stretches")
+        tag = self.cell_data.get("region")
+        if lam is None or tag is None or self.cells is None:
+            return self
+        a, b, c, d = (self.points[self.cells[:, i]] for i in range(4))
+        vol = np.abs(np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a)) / 6.0  # straight-sided
+        stable = np.ones(len(tag), dtype=np.int8)
+        for region, i in self.region_tags.items():
+            mat = registry.get(materials[region]) if region in materials else None
+            if mat is None or mat.model not in cf.PARAMETERS:  # elastic solids: no Drucker limit here
+                continue
+            ids = np.flatnonzero(tag == i)
+            ok = drucker_margin(mat.model, mat.parameters, lam[ids].T) > 0
+            stable[ids] = ok
+            frac = float(vol[ids][~ok].sum() / vol[ids].sum()) if len(ids) else 0.0
+            self.drucker_unstable_fraction[region] = frac
+            if frac > 0:
+                warnings.warn(f"{region} ({mat.name}, {mat.model}): {100 * frac:.3g} % of its volume is beyond "
+                              f"the Drucker-stable range at load factor {self.load_factor:g} (principal "
+                              f"stretches {lam[ids][~ok].min():.3g}..{lam[ids][~ok].max():.3g}); results there "
+                              "depend on a law outside its valid range", UnstableMaterialWarning, stacklevel=2)
+        self.cell_data["drucker_stable"] = stable
+        return self
 
     @property
     def max_displacement(self) -> float:
@@ -61,6 +106,8 @@ class FEResult:
             "timing_s": self.timing_s,
             "mesh_stats": self.mesh_stats,
             "region_tags": self.region_tags,
+            "materials": self.materials,
+            "drucker_unstable_volume_fraction": self.drucker_unstable_fraction,
         }
         if "von_mises_MPa" in self.cell_data:
             vm, tag = self.cell_data["von_mises_MPa"], self.cell_data["region"]
@@ -70,9 +117,11 @@ class FEResult:
                 k: [float(lam[tag == i, 0].min()), float(lam[tag == i, 2].max())] for k, i in self.region_tags.items()}
         return to_jsonable(out)
 
-    def write_vtu(self, path) -> Path:
-        """VTU for ParaView: point displacement (mm); cell von Mises Cauchy stress (MPa), principal
-        stretches, region tag. Written atomically."""
+    def write_vtu(self, path, frame: str = FRAME_DEFAULT, force_N: float | None = None) -> Path:
+        """VTU for ParaView, written atomically: point displacement (mm); per cell von Mises and the Cauchy
+        stress tensor (MPa), the Green-Lagrange strain tensor, principal stretches, drucker_stable and the
+        region tag. Field data (ParaView: Information panel) name each region tag and its material, and the
+        coordinate frame (`frame`), as arrays whose names carry the text (meshio and ParaView read them)."""
         import meshio
 
         path = Path(path)
@@ -85,9 +134,43 @@ class FEResult:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.stem}.partial.vtu")
         meshio.write(tmp, m, binary=True)
-        write_atomic(path, tmp.read_bytes())
+        field_data = {f"region {i} = {r}" + (f" (material {self.materials[r]})" if r in self.materials else ""): i
+                      for r, i in self.region_tags.items()}
+        field_data[f"coordinate frame: {frame}"] = 0
+        if force_N is not None:
+            field_data["force_N"] = force_N
+        field_data["load_factor"] = self.load_factor
+        write_atomic(path, _with_field_data(tmp.read_bytes(), field_data))
         tmp.unlink()
         return path
+
+
+def _with_field_data(xml: bytes, values: dict[str, float]) -> bytes:
+    """Insert a VTK <FieldData> block (one-value arrays) after <UnstructuredGrid> of meshio's VTU."""
+    from xml.sax.saxutils import quoteattr
+
+    arrays = "".join(
+        f'<DataArray type="{"Int32" if isinstance(v, int) else "Float64"}" Name={quoteattr(k)} '
+        f'NumberOfTuples="1" format="ascii">{v!r}</DataArray>' for k, v in values.items())
+    at = xml.index(b"<UnstructuredGrid>") + len(b"<UnstructuredGrid>")
+    return xml[:at] + f"<FieldData>{arrays}</FieldData>".encode() + xml[at:]
+
+
+def write_series(path, steps: list[tuple[float, str]]) -> Path:
+    """ParaView .pvd collection: one VTU per load, the force (N) as ParaView's time (steps: (force, file
+    relative to the .pvd's folder))."""
+    from xml.sax.saxutils import quoteattr
+
+    rows = "\n".join(f'    <DataSet timestep="{t!r}" part="0" file={quoteattr(str(f))}/>' for t, f in steps)
+    text = ('<?xml version="1.0"?>\n<!-- needletissue: time = reduction force in N -->\n'
+            '<VTKFile type="Collection" version="0.1">\n  <Collection>\n' + rows + "\n  </Collection>\n</VTKFile>\n")
+    return write_atomic(path, text)
+
+
+def green_lagrange(F: np.ndarray) -> np.ndarray:
+    """E = (F^T F - I) / 2 of deformation gradients with shape (3, 3, ...)."""
+    C = np.einsum("ki...,kj...->ij...", F, F)
+    return 0.5 * (C - np.eye(3).reshape((3, 3) + (1,) * (F.ndim - 2)))
 
 
 def von_mises(sigma: np.ndarray) -> np.ndarray:
@@ -112,6 +195,7 @@ def write_results(out_dir, results: list[FEResult], config=None, vtu: bool = Tru
     if vtu:
         for k, r in enumerate(results):
             files.append(r.write_vtu(out_dir / f"{prefix}_{k}.vtu").name)
+        write_series(out_dir / f"{prefix}.pvd", [(r.load_factor, f) for r, f in zip(results, files)])
     payload = {"results": [r.to_dict() for r in results], "vtu": files}
     write_run_files(out_dir, config if config is not None else {}, payload)
     return payload

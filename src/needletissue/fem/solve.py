@@ -10,7 +10,7 @@ import numpy as np
 from needletissue.errors import ConvergenceError, InputError, check_number
 from needletissue.fem import linsolve
 from needletissue.fem.model import Fixed, FEModel, PrescribedDisplacement, SurfaceForce
-from needletissue.fem.result import FEResult, principal_stretches, von_mises
+from needletissue.fem.result import FEResult, green_lagrange, principal_stretches, von_mises
 
 
 class _Loads:
@@ -285,12 +285,16 @@ def _result(model, loads, fvec, lam, nsteps, nit, ncut, wall, linear, newton_s, 
     ncell = len(mesh.cells)
     vm = np.zeros(ncell)
     stretch = np.zeros((ncell, 3))
+    cauchy = np.zeros((ncell, 9))  # for ParaView: row-major 3x3 tensors, cell means of the quadrature points
+    strain = np.zeros((ncell, 9))
     for r, ids in mesh.regions.items():
         body = model.bodies[r]
         sigma = np.asarray(body.evaluate.cauchy_stress(body.field))  # (3, 3, q, c)
         vm[ids] = von_mises(np.moveaxis(sigma, (0, 1), (-2, -1))).mean(0)
+        cauchy[ids] = np.moveaxis(sigma.mean(2), -1, 0).reshape(-1, 9)
         F = body.field[0].extract()  # (3, 3, q, c)
         stretch[ids] = principal_stretches(np.moveaxis(F, (0, 1), (-2, -1))).mean(0)
+        strain[ids] = np.moveaxis(green_lagrange(F).mean(2), -1, 0).reshape(-1, 9)
     tags = {r: i for i, r in enumerate(mesh.regions)}
     return FEResult(
         load_factor=lam, displacement=u, max_displacement_by_region=maxu, reaction_forces=reactions,
@@ -298,6 +302,6 @@ def _result(model, loads, fvec, lam, nsteps, nit, ncut, wall, linear, newton_s, 
         linear_solver=linear.name,
         timing_s={"newton": newton_s, "linear_solve": linear.seconds, "assembly_and_update": newton_s - linear.seconds},
         residual_norms=[list(n) for n in norms], region_tags=tags, points=mesh.points, cells=mesh.cells,
-        cell_data={"von_mises_MPa": vm, "principal_stretches": stretch,
-                   "region": mesh.region_of_cells().astype(np.int32)},
-    )
+        cell_data={"von_mises_MPa": vm, "principal_stretches": stretch, "cauchy_stress_MPa": cauchy,
+                   "green_lagrange_strain": strain, "region": mesh.region_of_cells().astype(np.int32)},
+    ).check_drucker({r: m.name for r, m in model.materials.items()})

@@ -37,6 +37,11 @@ SURFACES = (
 )
 
 
+# Above the paper-scale run (benchmarks/paper_scale_needle.py: 1.33 M tetrahedra, estimated 2.1 M) and
+# far below what runs for ever (--mesh-size 0.02: ~3e10): a finer mesh needs max_tetrahedra raised.
+DEFAULT_MAX_TETRAHEDRA = 3_000_000
+
+
 class MeshError(NeedleTissueError):
     """gmsh could not build a valid mesh (failed meshing, inverted or degenerate elements)."""
 
@@ -68,6 +73,7 @@ class NeedleGeometry:
     mesh_size: float = 4.0           # element size in tissue, bone and clamp near the needles, mm
     far_mesh_size: float = 20.0      # element size at the far boundary (graded from mesh_size), mm
     axis_points: bool = True         # embed each needle axis in the mesh (exact deflection curve)
+    max_tetrahedra: int = DEFAULT_MAX_TETRAHEDRA  # refuse before meshing when the estimate is above
 
     def __post_init__(self):
         if self.needles not in (1, 2) or isinstance(self.needles, bool):
@@ -99,6 +105,16 @@ class NeedleGeometry:
             raise InputError("needle_mesh_size", f"must be <= diameter ({d} mm), got {self.needle_mesh_size}")
         if self.far_mesh_size < self.mesh_size:
             raise InputError("far_mesh_size", f"must be >= mesh_size ({self.mesh_size}), got {self.far_mesh_size}")
+        if isinstance(self.max_tetrahedra, bool) or not isinstance(self.max_tetrahedra, int) or self.max_tetrahedra < 1:
+            raise InputError("max_tetrahedra", f"must be a positive integer, got {self.max_tetrahedra!r}")
+        needle_part, rest = self._tetrahedra_parts()
+        n = int(round(needle_part + rest))
+        if n > self.max_tetrahedra:
+            name = "needle_mesh_size" if needle_part > rest else "mesh_size"
+            raise InputError(name, f"about {n:,} tetrahedra estimated for these element sizes (needle "
+                                   f"{self.needle_mesh_size:g}, near {self.mesh_size:g}, far {self.far_mesh_size:g} "
+                                   f"mm), above the limit of {self.max_tetrahedra:,}: coarsen the mesh, or raise "
+                                   "the limit (max_tetrahedra, --max-tetrahedra)")
 
     # Derived dimensions -------------------------------------------------------------------------
     @property
@@ -151,6 +167,42 @@ class NeedleGeometry:
         for i in range(n):
             vols[f"needle_{i + 1}"] = r2 * (self.depth + self.free_length)
         return vols
+
+    def estimate_tetrahedra(self) -> int:
+        return int(round(sum(self._tetrahedra_parts())))
+
+    def _tetrahedra_parts(self) -> tuple[float, float]:
+        """(in the needles, elsewhere) of `estimate_tetrahedra`: tetrahedra the mesh will have, estimated from the size field before meshing (milliseconds).
+
+        The mesh's size field (`_size_fields`): needle size inside the needles; mesh_size within one
+        diameter of them, graded linearly to far_mesh_size at half_width. A regular tetrahedron of edge
+        h has volume h^3 / (6 sqrt 2): the estimate is the integral of 6 sqrt(2) / h(x)^3 over the solid,
+        needles exactly, the rest on a 1 mm grid (tests/geometry compares it with gmsh's counts)."""
+        c = 6.0 * math.sqrt(2.0)
+        vols = self.analytic_volumes()
+        n_needle = sum(v for k, v in vols.items() if k.startswith("needle")) * c / self.needle_mesh_size ** 3
+        x0, x1, y0, y1 = self.extent
+        step = min(1.0, self.diameter / 5)
+        R, D, hw = self.diameter / 2, self.diameter, self.half_width
+        hm, hf = self.mesh_size, self.far_mesh_size
+        cx0, cx1, cy0, cy1, cz0, cz1 = self.clamp_box
+        total = 0.0
+        for za, zb in ((-self.bone_thickness, self.tissue_thickness), (cz0, cz1)):  # bone + tissue, clamp
+            xa, xb, ya, yb = (x0, x1, y0, y1) if za < 0 else (cx0, cx1, cy0, cy1)
+            nx, ny, nz = (min(200, max(2, int(math.ceil((b - a) / step)))) for a, b in ((xa, xb), (ya, yb), (za, zb)))
+            x = xa + (np.arange(nx) + 0.5) * (xb - xa) / nx
+            y = ya + (np.arange(ny) + 0.5) * (yb - ya) / ny
+            z = za + (np.arange(nz) + 0.5) * (zb - za) / nz
+            X, Y = np.meshgrid(x, y, indexing="ij")
+            r = np.min([np.hypot(X - xn, Y) for xn in self.needle_x], axis=0)   # to the nearest axis
+            radial = np.maximum(r - R, 0.0)
+            for zz in z:
+                below = max(0.0, -self.depth - zz)  # under the needle tip: distance to the tip too
+                d = np.hypot(radial, below)
+                h = np.clip(hm + (hf - hm) * (d - D) / (hw - D), hm, hf) if hw > D else np.full_like(d, hm)
+                solid = (r >= R) | (below > 0)
+                total += float(np.sum(c / h[solid] ** 3)) * (xb - xa) * (yb - ya) * (zb - za) / (nx * ny * nz)
+        return n_needle, total
 
     def regions(self) -> tuple[str, ...]:
         return tuple(r for r in REGIONS if r != "needle_2" or self.needles == 2)

@@ -132,9 +132,12 @@ def ct_label_volume(ct: str | Path | None = None, labels: str | Path | None = No
         d = data_dir() / "pelvis_ct"
     ct = Path(ct) if ct is not None else d / "example_ct.nii.gz"
     labels = Path(labels) if labels is not None else d / "example_seg_fast_force_split.nii.gz"
+    from needletissue.imaging.io import check_complete
+
     for name, p in (("ct", ct), ("labels", labels)):
         if not p.is_file():
             raise InputError(name, f"file not found: {p}")
+        check_complete(p, name)  # whole gzip stream, every voxel, no NaN: before nibabel reads it
     img_ct, img_lab = nib.as_closest_canonical(nib.load(ct)), nib.as_closest_canonical(nib.load(labels))
     hu = np.asarray(img_ct.dataobj, dtype=np.float32)
     seg = np.asarray(img_lab.dataobj).astype(np.int32)

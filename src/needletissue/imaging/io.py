@@ -37,6 +37,7 @@ def read_image(path: str | Path, field: str = "image"):
             image = reader.Execute()  # applies RescaleSlope/Intercept -> HU
         else:
             _check_nifti_spacing(path, field)
+            check_complete(path, field)  # ITK reads a truncated file silently (zeros)
             image = sitk.ReadImage(str(path))
     except InputError:
         raise
@@ -73,6 +74,56 @@ def _check_nifti_spacing(path: Path, field: str) -> None:
                          f"(pixdim {tuple(zooms)}); must be > 0 mm")
 
 
+def check_complete(path: str | Path, field: str) -> None:
+    """A NIfTI file must hold every voxel its header promises, a .gz its whole, intact stream (read to
+    the end: gzip checks its CRC and length there), and no NaN or infinite voxel (SimpleITK's NIfTI
+    reader turns NaN into 0, so this is checked on the raw data while it streams by)."""
+    path = Path(path)
+    if not path.name.lower().endswith((".nii", ".nii.gz")):
+        return
+    import gzip
+    import zlib
+
+    import nibabel
+
+    try:
+        hdr = nibabel.load(str(path)).header
+        shape, dtype = hdr.get_data_shape(), hdr.get_data_dtype()
+        offset = int(hdr.get_data_offset()) or int(getattr(hdr, "single_vox_offset", 352))
+    except Exception:  # not a NIfTI nibabel understands: SimpleITK reports it
+        return
+    need = offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    floating = np.issubdtype(dtype, np.floating)
+    got, bad, rest = 0, 0, b""
+    try:
+        with (gzip.open if path.name.lower().endswith(".gz") else open)(path, "rb") as f:
+            while chunk := f.read(1 << 22):
+                start = max(0, offset - got)
+                got += len(chunk)
+                if floating and start < len(chunk):
+                    data = rest + chunk[start:]
+                    n = len(data) // dtype.itemsize * dtype.itemsize
+                    bad += int(np.count_nonzero(~np.isfinite(np.frombuffer(data[:n], dtype=dtype))))
+                    rest = data[n:]
+    except (EOFError, gzip.BadGzipFile, zlib.error, OSError) as exc:
+        raise InputError(field, f"{path}: damaged or truncated file ({exc}); the header promises {shape} "
+                                "voxels") from None
+    if got < need:
+        raise InputError(field, f"{path}: truncated: {got:,} bytes of the {need:,} that the header's "
+                                f"{shape} voxels need (file cut short?)")
+    if bad:
+        raise InputError(field, f"{path}: {bad:,} voxels are NaN or infinite")
+
+
+def check_finite(image, what: str) -> None:
+    """NaN or infinite voxels would pass every threshold test silently: reject them."""
+    arr = np.asarray(_sitk().GetArrayViewFromImage(image))
+    if np.issubdtype(arr.dtype, np.floating):
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
+        if bad:
+            raise InputError(what, f"{bad:,} of {arr.size:,} voxels are NaN or infinite")
+
+
 def check_geometry(image, what: str) -> None:
     """Spacing must be positive and finite (a zero or missing spacing makes every length wrong)."""
     sp = np.asarray(image.GetSpacing(), float)
@@ -100,6 +151,7 @@ def grid_description(image) -> str:
 def read_ct(path: str | Path):
     """CT in Hounsfield units; data that do not look like HU raise InputError saying so."""
     image = read_image(path, "CT")
+    check_finite(image, f"CT {path}")
     arr = _sitk().GetArrayViewFromImage(image)
     check_hounsfield(np.asarray(arr), f"CT {path}")
     return image

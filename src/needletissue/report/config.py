@@ -15,22 +15,32 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from needletissue.errors import FORCE_LIMIT_N, FORCE_RANGE_HELP
 from needletissue.runinfo import read_toml
 from needletissue.studies.config import validation_to_input_error
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # TOML has nan, inf
 
 
 def _forces(v: list[float]) -> list[float]:
     if not v:
         raise ValueError("give at least one force")
-    if any(abs(f) > 2000 for f in v):
-        raise ValueError("forces must be within [-2000, 2000] N")
+    bad = [f for f in v if not abs(f) <= FORCE_LIMIT_N]
+    if bad:
+        raise ValueError(f"forces must be within |F| <= {FORCE_LIMIT_N:g} N (the range shared by ritz, fe needle, "
+                         f"fe pelvis and reproduce), got {bad[0]:g}")
+    return v
+
+
+def _positive_forces(v: list[float]) -> list[float]:
+    if any(not f > 0 for f in _forces(v)):
+        raise ValueError("the FE models take forces > 0 N (the direction is fixed by the model)")
     return v
 
 
 Forces = Annotated[list[float], AfterValidator(_forces)]
+PositiveForces = Annotated[list[float], AfterValidator(_positive_forces)]
 
 
 class MaterialsStage(_Strict):
@@ -53,7 +63,7 @@ class Layer(_Strict):
 
 class RitzStage(_Strict):
     enabled: bool = Field(description="Run the Rayleigh-Ritz needle model (paper Fig. 5).")
-    forces_N: Forces = Field(description="Reduction forces, N (|F| <= 2000).")
+    forces_N: Forces = Field(description=f"Reduction forces, N ({FORCE_RANGE_HELP}).")
     diameter_mm: float = Field(gt=0, le=50, description="Needle diameter, mm.")
     free_length_mm: float = Field(gt=0, le=1000, description="Needle length from bone to gripper centre, mm.")
     youngs_modulus_MPa: float = Field(gt=0, le=1e7, description="Needle Young's modulus, MPa.")
@@ -71,7 +81,7 @@ class RitzStage(_Strict):
 
 class NeedleFEStage(_Strict):
     enabled: bool = Field(description="Run the parametric needle-tissue-bone FE model at a demo mesh size.")
-    forces_N: Forces = Field(description="Reduction forces, N (|F| <= 2000).")
+    forces_N: PositiveForces = Field(description=f"Reduction forces, N ({FORCE_RANGE_HELP}).")
     needles: Literal[1, 2] = Field(description="One needle (like-for-like with Ritz) or two joined by the clamp.")
     diameter_mm: float = Field(gt=0, le=50, description="Needle diameter, mm.")
     free_length_mm: float = Field(gt=0, le=1000, description="Needle length from the bone surface to its end, mm.")
@@ -87,7 +97,7 @@ class PelvisStage(_Strict):
     source: Literal["ct", "ssm"] = Field(description="Geometry from the example CT or the mean-shape surfaces.")
     ct: str = Field(description="CT file (NIfTI or DICOM folder); empty = the example CT.")
     labels: str = Field(description="Label map on the CT grid; empty = the example label map.")
-    forces_N: Forces = Field(description="Reduction forces, N (|F| <= 2000).")
+    forces_N: PositiveForces = Field(description=f"Reduction forces, N ({FORCE_RANGE_HELP}).")
     mesh_size_mm: float = Field(gt=0, le=50, description="Tissue element size, mm.")
 
 

@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from needletissue.report.config import annotated_toml
-from needletissue.runinfo import to_jsonable, versions, write_atomic
+from needletissue.runinfo import relocate, version_record, write_atomic
 
 _CSS = """
 body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}
@@ -41,13 +41,15 @@ def comparison_table(result) -> str:
     if not rows:
         return "<p>No stage produced a number the paper reports.</p>"
     out = ['<table><tr><th class="l">quantity</th><th>ours</th><th>paper</th><th>difference</th>'
-           '<th>difference %</th><th class="l">unit</th><th class="l">paper source / note</th></tr>']
+           '<th>difference %</th><th class="l">unit</th><th class="l">verdict</th>'
+           '<th class="l">paper source / note</th></tr>']
     for c in rows:
         j = c.to_json()
         src = " — ".join(x for x in (j["paper_source"], c.note) if x)
         out.append(f'<tr><td class="l">{html.escape(c.quantity)}</td><td>{_fmt(c.ours)}</td>'
                    f'<td>{_fmt(j["paper"])}</td><td>{_fmt(j["difference"], 3)}</td>'
                    f'<td>{_fmt(j["relative_difference_percent"], 3)}</td><td class="l">{html.escape(c.unit)}</td>'
+                   f'<td class="l">{html.escape(j["verdict"])}</td>'
                    f'<td class="l">{html.escape(src)}</td></tr>')
     out.append("</table>")
     return "\n".join(out)
@@ -88,10 +90,10 @@ def write_report(run_dir: Path, cfg, result) -> Path:
         if o.result.files:
             names = ", ".join(html.escape(str(Path(p).relative_to(run_dir))) for p in o.result.files)
             parts.append(f"<p>Files: {names}</p>")
-        data = json.dumps(to_jsonable(o.result.data), indent=1)
+        data = json.dumps(relocate(o.result.data, run_dir), indent=1)
         if len(data) < 20000:
             parts.append(f"<details><summary>result data</summary><pre>{html.escape(data)}</pre></details>")
     parts.append(f"<h2>Configuration</h2><pre>{html.escape(annotated_toml(cfg))}</pre>")
-    parts.append(f"<h2>Versions</h2><pre>{html.escape(json.dumps(versions(), indent=1))}</pre>")
+    parts.append(f"<h2>Versions</h2><pre>{html.escape(json.dumps(version_record(), indent=1))}</pre>")
     parts.append("</body></html>")
     return write_atomic(run_dir / "report.html", "\n".join(parts))

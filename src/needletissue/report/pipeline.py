@@ -20,9 +20,14 @@ from typing import Any, Callable
 from needletissue.errors import InputError
 from needletissue.report.config import ReproduceConfig, annotated_toml
 from needletissue.report.paper import PAPER
-from needletissue.runinfo import to_jsonable, write_atomic, write_json, versions
+from needletissue.runinfo import (check_output_dir, current_umask, make_dir, to_jsonable, version_record, write_atomic,
+                                  write_json)
 
 MARKER = ".needletissue-reproduce"
+# A reproduced number "agrees" with the paper's when within 5 % of it: the paper prints 3-5 digits and
+# states no uncertainty; 5 % is above our mesh/order errors (docs/needle_model.md, docs/ritz.md) and below
+# every difference whose cause the docs trace to a modelling choice.
+AGREEMENT_PERCENT = 5.0
 
 
 @dataclass
@@ -32,8 +37,23 @@ class Comparison:
     quantity: str
     ours: float | str
     unit: str
-    paper_key: str | None = None
+    paper_key: str | None = None  # only for a like-for-like value (same model, needles, force, length)
     note: str = ""
+    tolerance_percent: float | None = AGREEMENT_PERCENT  # "agrees" within this of the paper's value
+    limit: float | None = None  # instead: a criterion ours < limit (the paper's RMSE < 0.05 MPa)
+
+    @property
+    def verdict(self) -> str:
+        """agrees / differs / meets the criterion: the row's reading, stated with its tolerance."""
+        if self.limit is not None and isinstance(self.ours, (int, float)):
+            return (f"meets the criterion (< {self.limit:g} {self.unit})" if self.ours < self.limit
+                    else f"fails the criterion (< {self.limit:g} {self.unit})")
+        rel = self.relative_percent
+        if rel is None or self.tolerance_percent is None:
+            return ""
+        if abs(rel) <= self.tolerance_percent:
+            return f"agrees (within {self.tolerance_percent:g} %)"
+        return f"differs ({rel:+.0f} %, tolerance {self.tolerance_percent:g} %)"
 
     @property
     def paper(self):
@@ -53,6 +73,7 @@ class Comparison:
     def to_json(self) -> dict:
         return {"quantity": self.quantity, "ours": self.ours, "unit": self.unit, "paper": self.paper,
                 "difference": self.difference, "relative_difference_percent": self.relative_percent,
+                "verdict": self.verdict,
                 "paper_source": PAPER[self.paper_key].source if self.paper_key else None, "note": self.note}
 
 
@@ -88,13 +109,53 @@ def _run_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext") -> St
     # kill this process through the closed pipe instead of raising BrokenProcessPool.
     signal.signal(signal.SIGPIPE, signal.SIG_IGN)
 
-    with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"))
+    try:
         fut = pool.submit(stage.run, cfg, StageContext(ctx.run_dir, ctx.ct, ctx.labels))
         try:
             return fut.result()
         except BrokenProcessPool:
             raise RuntimeError(f"the {stage.name} stage's process died (a crash in native code, e.g. a "
                                "segmentation fault, or killed for memory)") from None
+    except BaseException:  # interrupted (SIGINT/SIGTERM): stop the worker, do not wait for its result
+        _stop_workers(pool)
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _stop_workers(pool) -> None:
+    """Terminate a ProcessPoolExecutor's processes (Python 3.14 has pool.terminate_workers())."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    for p in procs:
+        p.terminate()
+    for p in procs:
+        p.join(5)
+        if p.is_alive():
+            p.kill()
+            p.join(5)
+
+
+class _StopOnSignals:
+    """While reproduce runs: SIGTERM (and SIGINT, as KeyboardInterrupt) unwind the run, so that workers
+    are stopped and the temporary folder removed; SIGTERM then exits with code 143 (128 + 15). Without
+    it SIGTERM killed the process at once, leaving the folder and orphan workers computing on."""
+
+    def __enter__(self):
+        import threading
+
+        self.old = None
+        if threading.current_thread() is threading.main_thread():  # signals go to the main thread only
+            self.old = signal.signal(signal.SIGTERM, self._raise)
+        return self
+
+    @staticmethod
+    def _raise(signum, frame):
+        raise SystemExit(128 + signum)
+
+    def __exit__(self, *exc):
+        if self.old is not None:
+            signal.signal(signal.SIGTERM, self.old)
 
 
 @dataclass
@@ -146,47 +207,55 @@ def run_reproduce(cfg: ReproduceConfig, out: str | Path, stages: list[Stage], *,
 
     out = Path(out).resolve()
     _check_out(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the result folder should not be
+    check_output_dir(out, "--out")  # a read-only place: one error line before any stage runs
+    make_dir(out.parent)
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    except OSError as exc:
+        raise InputError("--out", f"{out}: cannot write in {out.parent}: {exc.strerror or exc}") from None
+    os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes it private; the result folder should not be
     t0 = time.perf_counter()
     outcomes: list[StageOutcome] = []
     try:
-        ctx = StageContext(run_dir=tmp, ct=ct, labels=labels)
-        with _StageProgress(stages, progress) as bar:
-            for stage in stages:
-                on, reason = stage.enabled(cfg, ctx)
-                if not on:
-                    outcomes.append(StageOutcome(stage.name, stage.title, "skipped", 0.0, reason))
-                    bar.finish(stage, "skipped", reason)
-                    continue
-                bar.start(stage)
-                ts = time.perf_counter()
-                try:
-                    res = _run_isolated(stage, cfg, ctx) if stage.isolated else stage.run(cfg, ctx)
-                except Exception as exc:  # a failed stage is reported; the others still run
-                    dt = time.perf_counter() - ts
-                    msg = f"{type(exc).__name__}: {exc}"
-                    outcomes.append(StageOutcome(stage.name, stage.title, "failed", dt,
-                                                 msg + "\n" + traceback.format_exc(limit=6)))
-                    bar.finish(stage, "failed", msg)
-                    continue
-                dt = time.perf_counter() - ts
-                ctx.previous[stage.name] = res
-                outcomes.append(StageOutcome(stage.name, stage.title, "ok", dt, result=res))
-                bar.finish(stage, "ok", f"{dt:.1f} s")
-        result = ReproduceResult(out, outcomes, time.perf_counter() - t0)
-        write_atomic(tmp / "config.toml", annotated_toml(cfg))
-        write_json(tmp / "versions.json", versions())
-        write_report(tmp, cfg, result)
-        write_json(tmp / "results.json", results_json(cfg, result, tmp))
-        write_atomic(tmp / MARKER, f"complete {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
-        _swap(tmp, out)
+        with _StopOnSignals():
+            return _stages(cfg, out, tmp, stages, ct, labels, progress, t0, outcomes, write_report)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _stages(cfg, out, tmp, stages, ct, labels, progress, t0, outcomes, write_report) -> ReproduceResult:
+    """The stages in order into tmp, then the run files and the report; rename tmp to out."""
+    ctx = StageContext(run_dir=tmp, ct=ct, labels=labels)
+    with _StageProgress(stages, progress) as bar:
+        for stage in stages:
+            on, reason = stage.enabled(cfg, ctx)
+            if not on:
+                outcomes.append(StageOutcome(stage.name, stage.title, "skipped", 0.0, reason))
+                bar.finish(stage, "skipped", reason)
+                continue
+            bar.start(stage)
+            ts = time.perf_counter()
+            try:
+                res = _run_isolated(stage, cfg, ctx) if stage.isolated else stage.run(cfg, ctx)
+            except Exception as exc:  # a failed stage is reported; the others still run
+                dt = time.perf_counter() - ts
+                msg = f"{type(exc).__name__}: {exc}"
+                outcomes.append(StageOutcome(stage.name, stage.title, "failed", dt,
+                                             msg + "\n" + traceback.format_exc(limit=6)))
+                bar.finish(stage, "failed", msg)
+                continue
+            dt = time.perf_counter() - ts
+            ctx.previous[stage.name] = res
+            outcomes.append(StageOutcome(stage.name, stage.title, "ok", dt, result=res))
+            bar.finish(stage, "ok", f"{dt:.1f} s")
+    result = ReproduceResult(out, outcomes, time.perf_counter() - t0)
+    write_atomic(tmp / "config.toml", annotated_toml(cfg))
+    write_json(tmp / "versions.json", version_record())
+    write_report(tmp, cfg, result)
+    write_json(tmp / "results.json", results_json(cfg, result, tmp))
+    write_atomic(tmp / MARKER, f"complete {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
+    _swap(tmp, out)
     return result
 
 

@@ -1,7 +1,8 @@
 """Solve the Ritz model: one force (control loop), many forces, or arrays of parameter sets.
 
 Every answer carries `error_estimate_mm` (sup over z of the change of v(z) when the order is raised by
-one) and `converged` (error estimate <= tol_mm). A Newton solve that does not converge raises
+one) and `order_converged` (error estimate <= tol_mm: about the trial-function order p, not the solve;
+`converged` is its old name, kept for parsers). A Newton solve that does not converge raises
 ConvergenceError; no unconverged answer is ever returned.
 """
 
@@ -15,7 +16,7 @@ import numpy as np
 
 from needletissue.errors import ConvergenceError, InputError, check_number
 from needletissue.ritz import basis, kernel
-from needletissue.ritz.model import RitzModel
+from needletissue.ritz.model import MAX_DEFLECTION_RATIO, RitzModel
 
 DEFAULT_TOL_MM = 1e-4
 _PARALLEL_MIN = 2_000  # below this a thread pool costs more than it saves
@@ -41,8 +42,23 @@ class RitzResult:
     order: int
     iterations: int  # Newton iterations of the order-p solve
     error_estimate_mm: float
-    converged: bool  # error_estimate_mm <= tol_mm
+    converged: bool  # error_estimate_mm <= tol_mm (the order, not Newton); alias order_converged
     free_length_mm: float
+
+    @property
+    def order_converged(self) -> bool:
+        """error_estimate_mm <= tol_mm: raising the order p changes v(z) by less than tol. Newton itself
+        always converged (it raises ConvergenceError otherwise)."""
+        return self.converged
+
+    @property
+    def deflection_ratio(self) -> float:
+        """|v|max / l: the model is valid up to MAX_DEFLECTION_RATIO (small rotations)."""
+        return abs(self.max_deflection_mm) / self.free_length_mm
+
+    @property
+    def within_validity(self) -> bool:
+        return self.deflection_ratio <= MAX_DEFLECTION_RATIO
 
     def deflection(self, z_mm) -> np.ndarray:
         """v(z) in mm at z in [0, l] mm."""
@@ -73,8 +89,12 @@ class RitzResult:
             "coefficients": list(self.coefficients),
             "order": self.order,
             "iterations": self.iterations,
-            "converged": self.converged,
+            "order_converged": self.converged,  # error_estimate_mm <= tol_mm: the order p is enough
+            "newton_converged": True,  # always: an unconverged Newton solve raises, never returns
+            "converged": self.converged,  # old name of order_converged, kept for parsers
             "error_estimate_mm": self.error_estimate_mm,
+            "deflection_to_free_length": self.deflection_ratio,
+            "within_validity_range": self.within_validity,  # deflection_to_free_length <= 0.25
         }
 
 
@@ -97,9 +117,13 @@ class BatchResult:
     order: np.ndarray
     iterations: np.ndarray
     error_estimate_mm: np.ndarray
-    converged: np.ndarray
+    converged: np.ndarray  # error_estimate_mm <= tol_mm per sample (the order); alias order_converged
     free_length_mm: np.ndarray
     layer_names: tuple
+
+    @property
+    def order_converged(self) -> np.ndarray:
+        return self.converged
 
     def __len__(self) -> int:
         return self.force_N.shape[0]

@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pandas as pd
 
-from needletissue.errors import InputError
+from needletissue.errors import FORCE_LIMIT_N, InputError
 from needletissue.models.needle import NeedleModelConfig, run_needle_model
 from needletissue.geometry.needle import NeedleGeometry
 from needletissue.studies.models import CaseModel, ParamInfo, register
@@ -27,7 +27,8 @@ GEOMETRY = {
     "needle_mesh_size_mm": "needle_mesh_size", "far_mesh_size_mm": "far_mesh_size",
 }
 PARAMETERS = {
-    "force_N": ParamInfo("Reduction force on the gripper, N (> 0, default lateral direction).", gt=0),
+    "force_N": ParamInfo("Reduction force on the gripper, N (> 0, default lateral direction; the shared "
+                         "force range).", gt=0, le=FORCE_LIMIT_N),
     "diameter_mm": ParamInfo("Needle diameter, mm.", gt=0),
     "free_length_mm": ParamInfo("Needle length from the bone surface to its end, mm.", gt=0),
     "muscle_thickness_mm": ParamInfo("Muscle layer thickness, mm.", gt=0),

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from needletissue.errors import InputError
+from needletissue.errors import FORCE_LIMIT_N, InputError
 from needletissue.ritz import RitzModel, solve_batch
 from needletissue.studies.models import CaseModel, ParamInfo, register
 
@@ -22,7 +22,8 @@ _DEFAULT = RitzModel()
 LAYERS = tuple(la.name for la in _DEFAULT.layers)
 
 PARAMETERS = {
-    "force_N": ParamInfo("Reduction force at the load point, N (sign = direction)."),
+    "force_N": ParamInfo("Reduction force at the load point, N (sign = direction; the shared force range).",
+                         ge=-FORCE_LIMIT_N, le=FORCE_LIMIT_N),
     "diameter_mm": ParamInfo("Needle diameter, mm.", gt=0),
     "free_length_mm": ParamInfo("Needle length from bone to the load point region, mm.", gt=0),
     "youngs_modulus_MPa": ParamInfo("Needle Young's modulus, MPa.", gt=0),

@@ -19,7 +19,8 @@ DISTRIBUTIONS = ("uniform", "normal", "truncnorm", "lognormal")
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: TOML has nan and inf; a NaN in a grid would run (and fail) case by case
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class ParameterSpec(_Strict):

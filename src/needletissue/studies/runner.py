@@ -28,7 +28,7 @@ import numpy as np
 import pandas as pd
 
 from needletissue.errors import InputError
-from needletissue.runinfo import write_atomic, write_json
+from needletissue.runinfo import check_output_dir, make_dir, write_atomic, write_json
 from needletissue.studies.config import StudyConfig
 from needletissue.studies.models import get_model, run_chunk
 from needletissue.studies.sampling import design
@@ -75,7 +75,7 @@ def _to_parquet_bytes(df: pd.DataFrame) -> bytes:
 
 def _prepare(cfg: StudyConfig, out_dir: Path) -> pd.DataFrame:
     """Create or reopen the study folder; refuse a folder that holds a different study."""
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_dir(out_dir)
     meta_path = out_dir / "study.json"
     fp = fingerprint(cfg)
     if meta_path.exists():
@@ -153,7 +153,11 @@ def _client(scheduler: str | None, workers: int):
     from dask.distributed import Client, LocalCluster
 
     if scheduler:
-        return Client(scheduler), None
+        try:
+            return Client(scheduler, timeout="10s"), None
+        except (OSError, ValueError, TypeError) as exc:  # unreachable, refused, or not an address
+            msg = " ".join(str(exc).split()) or type(exc).__name__
+            raise InputError("--scheduler", f"cannot reach a Dask scheduler at {scheduler!r}: {msg}") from None
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                            dashboard_address=None, silence_logs=40)
     return Client(cluster), cluster
@@ -167,8 +171,17 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
     the existing cluster at ``scheduler`` (e.g. 'tcp://10.0.0.5:8786').
     """
     t0 = time.perf_counter()
-    out_dir = Path(out_dir)
+    out_dir = check_output_dir(out_dir, "--out")  # before any file is written or worker started
     model = get_model(cfg.study.model)
+    early = _client(scheduler, workers) if scheduler and not serial else None  # unreachable: nothing written
+    try:
+        return _run(cfg, out_dir, model, early, scheduler, workers, serial, progress, analyse, t0)
+    finally:
+        if early is not None:
+            early[0].close()
+
+
+def _run(cfg, out_dir, model, early, scheduler, workers, serial, progress, analyse, t0) -> StudyResult:
     cases = _prepare(cfg, out_dir)
     params = [c for c in cases.columns if c != "case_id"]
     cs = chunk_size(cfg)
@@ -203,7 +216,7 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
         elif pending:
             from dask.distributed import as_completed
 
-            client, cluster = _client(scheduler, workers)
+            client, cluster = early or _client(scheduler, workers)
             cluster_start = time.perf_counter() - t_compute
             t_compute = time.perf_counter()  # the cluster's start-up is reported apart
             t_unix = time.time()
@@ -222,7 +235,8 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, *, scheduler: str | None = 
                     bar.advance(len(df), int((df["status"] != "ok").sum()))
                 t_end = time.perf_counter()  # before the cluster shuts down
             finally:
-                client.close()
+                if early is None:
+                    client.close()
                 if cluster is not None:
                     cluster.close()
 

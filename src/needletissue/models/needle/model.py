@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from needletissue.errors import InputError, check_number
+from needletissue.errors import InputError, check_force, check_number
 from needletissue.geometry.needle import NeedleGeometry, mesh_needle_model
 
 MATERIALS = {
@@ -24,6 +24,8 @@ MATERIALS = {
     "adipose": "adipose", "needle_1": "needle", "needle_2": "needle", "clamp": "clamp",
 }
 TISSUE_FAR = ("fixed", "free")
+FRAME = ("needle model, mm: z along the needles (0 at the bone surface, tissue above), x across the needles, "
+         "y lateral (the default force direction)")
 
 
 @dataclass(frozen=True)
@@ -46,7 +48,7 @@ class NeedleModelConfig:
             raise InputError("geometry", "must be a NeedleGeometry")
         if len(self.forces) == 0:
             raise InputError("forces", "give at least one force (N)")
-        f = [check_number("forces", v, gt=0) for v in self.forces]
+        f = [check_force("forces", v) for v in self.forces]
         if any(b <= a for a, b in zip(f, f[1:])):
             # one load path: the solver needs strictly increasing load factors
             object.__setattr__(self, "forces", tuple(sorted(set(f))))
@@ -101,6 +103,7 @@ class NeedleLoadResult:
             "needle_end_deflection_mm": self.needle_end_deflection_mm,
             "newton_iterations": self.newton_iterations,
             "steps": self.steps,
+            "drucker_unstable_volume_fraction": self.fe.drucker_unstable_fraction if self.fe is not None else {},
             "reaction_forces_N": {k: np.asarray(v).tolist() for k, v in self.fe.reaction_forces.items()}
             if self.fe is not None else {},
             "deflection_curves": {k: {"z_mm": c.z_mm.tolist(), "deflection_mm": c.deflection_mm.tolist()}
@@ -250,17 +253,27 @@ def write_outputs(result: NeedleModelResult, out_dir: Path) -> None:
     from needletissue.runinfo import write_run_files
 
     out_dir.mkdir(parents=True, exist_ok=True)
+    from needletissue.fem.result import write_series
+
     files = {"mesh": "needle_model.msh"}
     for r in result.results:
         name = f"needle_{r.force_N:g}N.vtu"
-        r.fe.write_vtu(out_dir / name)
+        r.fe.write_vtu(out_dir / name, frame=FRAME, force_N=r.force_N)
         files[f"vtu_{r.force_N:g}N"] = name
+    files["series"] = write_series(out_dir / "needle.pvd", [(r.force_N, files[f"vtu_{r.force_N:g}N"])
+                                                          for r in result.results]).name
     from needletissue.models.needle.plot import plot_deflection_curves, plot_deformed
 
     files["figure_deformed"] = plot_deformed(result, out_dir / "needle_deformed.png").name
     files["figure_deflection"] = plot_deflection_curves(result, out_dir / "needle_deflection.png").name
     result.files = files
-    write_run_files(out_dir, {"needle_model": _config_dict(result.config)}, result.to_dict())
+    record = {"needle_model": _config_dict(result.config)}
+    contact = result.extra.get("contact")
+    if contact:  # the frictional interfaces, in the form `fe needle --config` reads back
+        s = next(iter(contact["settings"].values()), {})
+        record["contact"] = {"friction": contact["interfaces"], "dhat_mm": s.get("dhat_mm"),
+                             "eps_v_mm": s.get("eps_v_mm")}
+    write_run_files(out_dir, record, result.to_dict())
 
 
 def _config_dict(cfg: NeedleModelConfig) -> dict:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from needletissue.errors import InputError, check_number
+from needletissue.errors import InputError, check_force, check_number
 
 PAPER = {
     "forces_N": [100.0, 200.0, 300.0],
@@ -36,6 +36,8 @@ PAPER = {
     "soft_tissue_thickness_mm": {"muscle": 22.0, "adipose": 10.0, "patients_mean": 31.82, "patients_sd": 5.43},
     "elements": 1329469,
 }
+
+FRAME = "patient RAS, mm (x right, y anterior, z superior), the CT's scanner coordinates"
 
 MATERIALS = {
     "hip_cortical": "cortical_bone",
@@ -127,7 +129,7 @@ class PelvisConfig:
                 check_number(name, getattr(self, name), gt=0)
         if not self.forces:
             raise InputError("force", "give at least one force (N), e.g. --force 100 --force 200 --force 300")
-        self.forces = sorted(check_number("force", f, gt=0, le=5000) for f in self.forces)
+        self.forces = sorted(check_force("force", f) for f in self.forces)
         if len(set(self.forces)) != len(self.forces):
             raise InputError("force", f"forces must be distinct, got {self.forces}")
         check_number("mesh_size", self.mesh_size, ge=0.5, le=20)
@@ -156,6 +158,8 @@ class LoadResult:
     newton_iterations: int
     reactions_N: dict = field(default_factory=dict)
     vtu: str | None = None
+    # per region: volume fraction beyond the tissue law's Drucker-stable range (fem FEResult.check_drucker)
+    drucker_unstable_volume_fraction: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -325,7 +329,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
     # the FE reports the larger of the two needles' maxima: compare with the larger Ritz deflection
     ritz_tip = [max(n["max_deflection_mm"][i] for n in ritz["per_needle"]) for i in range(len(config.forces))]
 
-    out_dir = Path(config.out) if config.out else None
+    out_dir = Path(config.out).absolute() if config.out else None  # files store paths relative to it
     loads = []
     gripper_nodes = np.unique(qm.surfaces["gripper"])  # |mean u| over the gripper, as `fe needle`
     for f, r, rt in zip(config.forces, fe, ritz_tip):
@@ -335,10 +339,10 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         clamp_u = float(np.linalg.norm(r.displacement[gripper_nodes].mean(axis=0)))
         vtu = None
         if out_dir is not None:
-            vtu = str(r.write_vtu(out_dir / f"pelvis_{int(round(f))}N.vtu"))
+            vtu = str(r.write_vtu(out_dir / f"pelvis_{int(round(f))}N.vtu", frame=FRAME, force_N=f))
         loads.append(LoadResult(f, nmax, clamp_u, by, rt, None if rt is None else abs(rt - nmax), needles,
                                 r.newton_iterations, {k: np.asarray(v).tolist() for k, v in r.reaction_forces.items()},
-                                vtu))
+                                vtu, dict(r.drucker_unstable_fraction)))
     from needletissue.geometry.pelvis import SOFT_TISSUES
 
     last = loads[-1].max_deformation_mm
@@ -386,14 +390,23 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
         pm_m = pm.to_meshio()
         import meshio
 
+        from needletissue.fem.result import write_series
+
+        # the same region numbers as the results' VTU ("region"; -1 on the boundary triangles)
+        tags = fe[-1].region_tags
+        pm_m.cell_data["region"] = [np.concatenate([np.full(len(ids), tags.get(n, -1), np.int32)
+                                                    for n, ids in pm.regions.items()]),
+                                    np.full(len(pm_m.cells[1].data), -1, np.int32)]
         out_dir.mkdir(parents=True, exist_ok=True)
         meshio.write(out_dir / "pelvis_mesh.vtu", pm_m)
+        write_series(out_dir / "pelvis.pvd", [(x.force_N, Path(x.vtu).name) for x in loads if x.vtu])
         res.wall_time_s = time.perf_counter() - t0
         from needletissue.models.pelvis.report import comparison_markdown, render_in_subprocess
         from needletissue.runinfo import write_atomic
 
         write_atomic(out_dir / "pelvis_comparison.md", comparison_markdown(res))
-        write_run_files(out_dir, asdict(config), res.to_dict())
+        # `out` is where the files are, not an input: --out chooses it when the config is run again
+        write_run_files(out_dir, {k: v for k, v in asdict(config).items() if k != "out"}, res.to_dict())
         write_json(out_dir / "pelvis_results.json", res.to_dict())
         if config.figures:  # after the results are safe: a VTK crash must not lose them
             res.figures = render_in_subprocess(out_dir)

@@ -144,7 +144,7 @@ def figures_from_files(out_dir) -> list[str]:
     out_dir = Path(out_dir)
     d = json.loads((out_dir / "pelvis_results.json").read_text(encoding="utf-8"))
     last = d["results"][-1]
-    m = meshio.read(last["vtu"])
+    m = meshio.read(out_dir / last["vtu"])  # relative to out_dir (relocatable); absolute in old files
     cells = m.cells[0].data
     reg = np.asarray(m.cell_data["region"][0])
     tags = d["mesh"].get("region_tags") or {}

@@ -1,0 +1,76 @@
+"""Run records: files a colleague can read (umask), relocatable, with the versions that shaped them."""
+
+import os
+import stat
+
+import pytest
+
+from needletissue.runinfo import current_umask, make_dir, write_atomic, write_json
+
+
+@pytest.fixture
+def umask():
+    old = os.umask(0o022)
+    yield lambda m: os.umask(m)
+    os.umask(old)
+
+
+@pytest.mark.parametrize("mask", [0o022, 0o002, 0o077])
+def test_atomic_files_and_dirs_follow_the_umask(tmp_path, umask, mask):
+    umask(mask)
+    assert current_umask() == mask
+    f = write_atomic(tmp_path / "sub" / "a.txt", "x")
+    j = write_json(tmp_path / "b.json", {"a": 1})
+    d = make_dir(tmp_path / "d" / "e")
+    # what open() and mkdir() give: 0666 / 0777 minus the umask (mkstemp alone gives 0600)
+    assert stat.S_IMODE(f.stat().st_mode) == 0o666 & ~mask
+    assert stat.S_IMODE(j.stat().st_mode) == 0o666 & ~mask
+    assert stat.S_IMODE(d.stat().st_mode) == 0o777 & ~mask
+    assert stat.S_IMODE(f.parent.stat().st_mode) == 0o777 & ~mask
+
+
+def test_paths_inside_the_folder_are_written_relative(tmp_path):
+    import json
+
+    import tomllib
+
+    from needletissue.runinfo import relocate, write_run_files
+
+    out = tmp_path / "run"
+    inside, outside = str(out / "a" / "x.vtu"), "/data/ct.nii.gz"
+    assert relocate({"f": [inside, str(out)], "g": outside, "n": 1}, out) == {"f": ["a/x.vtu", "."], "g": outside,
+                                                                              "n": 1}
+    write_run_files(out, {"out": str(out), "ct": outside}, {"vtu": inside, "figures": {"files": [inside]}})
+    text = (out / "results.json").read_text(encoding="utf-8") + (out / "config.toml").read_text(encoding="utf-8")
+    assert str(tmp_path) not in text
+    assert json.loads((out / "results.json").read_text(encoding="utf-8"))["vtu"] == "a/x.vtu"
+    assert tomllib.loads((out / "config.toml").read_text(encoding="utf-8"))["ct"] == outside
+
+
+def test_versions_cover_every_dependency_and_the_run_is_recorded(tmp_path):
+    import json
+    import re
+    import subprocess
+    import tomllib
+    from pathlib import Path
+
+    from needletissue.runinfo import _PACKAGES, write_run_files
+
+    root = Path(__file__).resolve().parents[1]
+    deps = tomllib.loads((root / "pyproject.toml").read_text(encoding="utf-8"))["project"]["dependencies"]
+    norm = lambda n: re.sub(r"[-_.]+", "-", n).lower()  # noqa: E731  (PEP 503 names)
+    listed = {norm(p) for p in _PACKAGES}
+    missing = [d for d in deps if norm(re.split(r"[<>=;\[ ]", d)[0]) not in listed]
+    assert not missing, f"add to runinfo._PACKAGES: {missing}"
+
+    write_run_files(tmp_path, {}, {})
+    v = json.loads((tmp_path / "versions.json").read_text(encoding="utf-8"))
+    import needletissue
+    import numpy
+
+    assert v["needletissue"] == needletissue.__version__ and v["numpy"] == numpy.__version__
+    run = v["run"]
+    assert re.match(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\+00:00$", run["date"]) and run["command"]
+    head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
+    if head.returncode == 0 and Path(needletissue.__file__).resolve().is_relative_to(root):
+        assert run["git_commit"] == head.stdout.strip()
