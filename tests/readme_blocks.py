@@ -1,7 +1,9 @@
 """The README's code blocks as data: parse them, run their console commands, compare or update.
 
-`python tests/readme_blocks.py --update` reruns every `$ needletissue ...` console block and writes the
-real output back into README.md (timings are the only thing the comparison forgives).
+`python tests/readme_blocks.py --update [--demo RESULTS_DIR]` reruns every `$ needletissue ...` console
+block and writes the real output back into README.md (timings are the only thing the comparison
+forgives), and puts the comparison table of a `make demo` run (RESULTS_DIR, or a new run) between its
+markers.
 """
 
 from __future__ import annotations
@@ -93,8 +95,38 @@ def matches(expected: list[str], actual: list[str]) -> bool:
     return re.fullmatch(pattern, "".join(a + "\n" for a in act)) is not None
 
 
-def update(cwd: Path) -> None:
+BEGIN, END = "<!-- comparison:begin", "<!-- comparison:end -->"
+
+
+def comparison_section(text: str) -> tuple[int, int]:
+    """Offsets of the generated comparison table between its markers."""
+    start = text.index("\n", text.index(BEGIN)) + 1
+    return start, text.index(END)
+
+
+def demo_command(out: Path) -> list[str]:
+    """`make demo`'s recipe, writing into out instead of results/."""
+    makefile = (ROOT / "Makefile").read_text(encoding="utf-8")
+    recipe = re.search(r"^demo:.*\n\t(.*)$", makefile, re.M).group(1).split()
+    exe = Path(sys.executable).parent / Path(recipe[0]).name
+    args = recipe[1:]
+    args[args.index("--out") + 1] = str(out)
+    return [str(exe), *args]
+
+
+def run_demo(out: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(demo_command(out), env=environment(), capture_output=True, text=True, timeout=3600)
+
+
+def update(cwd: Path, demo: Path | None = None) -> None:
     text = README.read_text(encoding="utf-8")
+    if demo is None:
+        demo = cwd / "demo"
+        p = run_demo(demo)
+        if p.returncode != 0:
+            raise SystemExit(f"make demo's command failed:\n{p.stderr[-3000:]}")
+    a, b = comparison_section(text)
+    text = text[:a] + (demo / "comparison.md").read_text(encoding="utf-8") + text[b:]
     for b in reversed(blocks(text)):
         if b.lang != "console" or "$ needletissue" not in b.text:
             continue
@@ -108,7 +140,8 @@ def update(cwd: Path) -> None:
 if __name__ == "__main__":
     import tempfile
 
-    if sys.argv[1:] != ["--update"]:
-        sys.exit("usage: python tests/readme_blocks.py --update")
+    args = sys.argv[1:]
+    if not args or args[0] != "--update" or len(args) not in (1, 3) or (len(args) == 3 and args[1] != "--demo"):
+        sys.exit("usage: python tests/readme_blocks.py --update [--demo RESULTS_DIR]")
     with tempfile.TemporaryDirectory() as tmp:
-        update(Path(tmp))
+        update(Path(tmp), Path(args[2]).resolve() if len(args) == 3 else None)

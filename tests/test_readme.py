@@ -134,3 +134,58 @@ def test_the_demo_block_lists_the_pipeline_stages_in_order():
     (demo,) = [b for b in BLOCKS if b.lang == "console" and b.text.startswith("$ make demo")]
     shown = [ln[2:].split(" ok ")[0].strip() for ln in demo.text.splitlines() if ln.startswith("• ")]
     assert shown == [s.title for s in stage_list()]
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """One run of `make demo`'s command (the default configuration), as a user gets it."""
+    from readme_blocks import run_demo
+
+    out = tmp_path_factory.mktemp("demo") / "results"
+    p = run_demo(out)
+    assert p.returncode == 0, p.stderr[-3000:]
+    return out, p
+
+
+@pytest.mark.slow
+def test_demo_runs_every_stage_and_writes_what_the_readme_says(demo):
+    import json
+
+    out, p = demo
+    data = json.loads((out / "results.json").read_text(encoding="utf-8"))
+    assert {k: v["status"] for k, v in data["stages"].items()} == {k: "ok" for k in data["stages"]}
+    (block,) = [b for b in BLOCKS if b.lang == "console" and b.text.startswith("$ make demo")]
+    wrote = block.text.strip().splitlines()[-1]
+    files = [f.strip() for f in wrote.split(":", 1)[1].replace("\n", " ").split(",")]
+    assert all((out / f).is_file() for f in files), files
+    assert wrote.split("(")[0] in p.stdout.replace(str(out), "results").replace("\n", " ")
+
+
+@pytest.mark.slow
+def test_readme_comparison_is_the_demos(demo):
+    from readme_blocks import README, comparison_section
+
+    out, _ = demo
+    text = README.read_text(encoding="utf-8")
+    a, b = comparison_section(text)
+    assert text[a:b] == (out / "comparison.md").read_text(encoding="utf-8"), (
+        "README's comparison differs from make demo's comparison.md: "
+        "python tests/readme_blocks.py --update --demo RESULTS_DIR")
+
+
+@pytest.mark.slow
+@pytest.mark.browser
+def test_demo_report_and_its_3d_views_work_in_chromium(demo):
+    sys.path.insert(0, str(ROOT / "tests" / "report"))
+    from test_viewer import open_in_browser
+
+    out, _ = demo
+    for width in (1200, 390):
+        with open_in_browser(out / "report.html", width=width) as (page, errors):
+            page.wait_for_function("[...document.querySelectorAll('.ntv')].every(v => v.dataset.ready === '1')",
+                                   timeout=60000)
+            drawn = page.evaluate("[...document.querySelectorAll('.ntv')].map(v => v.viewer.drawn)")
+            assert len(drawn) >= 1 and all(n > 100 for n in drawn), drawn
+            assert page.evaluate("document.documentElement.scrollWidth") <= width, "scrolls sideways"
+            assert not errors, errors
+            assert all(src.startswith("data:") for src in page.eval_on_selector_all("img", "e => e.map(i => i.src)"))

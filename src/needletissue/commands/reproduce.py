@@ -65,7 +65,7 @@ def register(app: typer.Typer, groups) -> None:
                                        f"folder removed, {out} left as it was", soft_wrap=True)
             sys.exit(code if isinstance(code, int) else 1)
         con = Console()
-        con.print(f"wrote {res.out_dir} ({res.wall_time_s:.1f} s): report.html, results.json, config.toml, "
+        con.print(f"wrote {res.out_dir} ({res.wall_time_s:.1f} s): report.html, results.json, comparison.md, config.toml, "
                   "versions.json")
         failed = [o.name for o in res.outcomes if o.status == "failed"]
         if failed:

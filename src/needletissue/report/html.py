@@ -55,6 +55,27 @@ def comparison_table(result) -> str:
     return "\n".join(out)
 
 
+def _md(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v).replace("|", "\\|")
+
+
+def comparison_markdown(rows: list[dict]) -> str:
+    """The comparison with the paper as a Markdown table, from results.json's `comparison_with_paper`
+    (the README's table is this text from a `make demo` run, checked by tests/test_readme.py)."""
+    out = ["| quantity | this toolkit | paper | verdict | note |", "|---|---|---|---|---|"]
+    for r in rows:
+        unit = f" {r['unit']}" if r["unit"] and r["ours"] is not None and not isinstance(r["ours"], str) else ""
+        paper = "-" if r["paper"] is None else f"{_md(r['paper'])}{unit}"
+        note = " — ".join(x for x in (r.get("paper_source"), r.get("note")) if x)
+        out.append(f"| {_md(r['quantity'])} | {_md(r['ours'])}{unit} | {paper} | {_md(r.get('verdict') or '-')} "
+                   f"| {_md(note or '-')} |")
+    return "\n".join(out) + "\n"
+
+
 def write_report(run_dir: Path, cfg, result) -> Path:
     from needletissue.report.viewer import page_head, viewer_html
 

@@ -203,7 +203,7 @@ def _check_out(out: Path) -> None:
 def run_reproduce(cfg: ReproduceConfig, out: str | Path, stages: list[Stage], *, ct: Path | None = None,
                   labels: Path | None = None, progress: bool = True) -> ReproduceResult:
     """Run the enabled stages in order into a temporary folder, write the report, rename into ``out``."""
-    from needletissue.report.html import write_report
+    from needletissue.report.html import comparison_markdown, write_report
 
     out = Path(out).resolve()
     _check_out(out)
@@ -253,7 +253,9 @@ def _stages(cfg, out, tmp, stages, ct, labels, progress, t0, outcomes, write_rep
     write_atomic(tmp / "config.toml", annotated_toml(cfg))
     write_json(tmp / "versions.json", version_record())
     write_report(tmp, cfg, result)
-    write_json(tmp / "results.json", results_json(cfg, result, tmp))
+    payload = results_json(cfg, result, tmp)
+    write_json(tmp / "results.json", payload)
+    write_atomic(tmp / "comparison.md", comparison_markdown(payload["comparison_with_paper"]))
     write_atomic(tmp / MARKER, f"complete {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
     _swap(tmp, out)
     return result
