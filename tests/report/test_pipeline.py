@@ -48,6 +48,8 @@ def test_complete_run_has_marker_results_and_comparison(tmp_path):
     assert row["paper"] == PAPER["ritz_tip_deflection_300N_mm"].value
     assert row["difference"] == pytest.approx(18.0 - 17.63)
     assert (out / "config.toml").exists() and (out / "versions.json").exists()
+    md = (out / "comparison.md").read_text(encoding="utf-8").splitlines()
+    assert md[2].startswith("| Ritz tip deflection at 300 N | 18 mm | 17.63 mm | agrees (within 5 %) |")  # 2.1 %
     html = (out / "report.html").read_text(encoding="utf-8")
     assert "17.63" in html and "src=\"http" not in html  # nothing fetched from elsewhere
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".res.")]

@@ -203,7 +203,7 @@ def _check_out(out: Path) -> None:
 def run_reproduce(cfg: ReproduceConfig, out: str | Path, stages: list[Stage], *, ct: Path | None = None,
                   labels: Path | None = None, progress: bool = True) -> ReproduceResult:
     """Run the enabled stages in order into a temporary folder, write the report, rename into ``out``."""
-    from needletissue.report.html import comparison_markdown, write_report
+    from needletissue.report.html import write_report
 
     out = Path(out).resolve()
     _check_out(out)
@@ -226,6 +226,8 @@ def run_reproduce(cfg: ReproduceConfig, out: str | Path, stages: list[Stage], *,
 
 def _stages(cfg, out, tmp, stages, ct, labels, progress, t0, outcomes, write_report) -> ReproduceResult:
     """The stages in order into tmp, then the run files and the report; rename tmp to out."""
+    from needletissue.report.html import comparison_markdown
+
     ctx = StageContext(run_dir=tmp, ct=ct, labels=labels)
     with _StageProgress(stages, progress) as bar:
         for stage in stages:
