@@ -66,9 +66,9 @@ def test_tensors_drucker_flag_and_paraview_files(tmp_path):
     P = mat.umat(bulk=mat.bulk).gradient([F.reshape(3, 3, 1, 1), None])[0][..., 0, 0]
     sigma = P @ F.T / np.linalg.det(F)
     np.testing.assert_allclose(res.cell_data["cauchy_stress_MPa"], np.tile(sigma.ravel(), (len(model.mesh.cells), 1)),
-                               rtol=1e-8, atol=1e-10 * np.abs(sigma).max())
+                               rtol=1e-6, atol=1e-7 * np.abs(sigma).max())  # stored as float32
     np.testing.assert_allclose(res.cell_data["green_lagrange_strain"][0], (0.5 * (F.T @ F - np.eye(3))).ravel(),
-                               atol=1e-12)
+                               atol=1e-7)
     assert set(res.cell_data["drucker_stable"]) == {int(stable_at("muscle", F.reshape(3, 3, 1))[0])}
     assert res.materials == {"muscle": "muscle"}
     assert res.drucker_unstable_fraction["muscle"] in (0.0, 1.0)

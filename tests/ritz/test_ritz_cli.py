@@ -174,3 +174,23 @@ def test_one_force_range_and_the_validity_range():
     assert x[300.0]["within_validity_range"] and not x[500.0]["within_validity_range"]
     assert x[500.0]["deflection_to_free_length"] == pytest.approx(x[500.0]["max_deflection_mm"] / 84.18)
     assert r.returncode == 0 and r.stderr.startswith("warning: --force 500 N") and "0.25" in r.stderr
+
+
+def test_written_config_is_accepted_back(tmp_path):
+    """`ritz --plot` writes config.toml (model, order, forces); `ritz --config` solves the same again, and
+    options typed on the command line override the file."""
+    args = ["--force", "100", "--force", "250", "--diameter", "5.5", "--layer", "m:20:0.05", "--layer", "f:12:0.02",
+            "--order", "auto", "--no-cos"]
+    first = CliRunner().invoke(app, ["ritz", *args, "--plot", str(tmp_path / "f.png"), "--json"])
+    assert first.exit_code == 0, first.output
+    again = CliRunner().invoke(app, ["ritz", "--config", str(tmp_path / "config.toml"), "--json"])
+    assert again.exit_code == 0, again.output
+    assert json.loads(again.stdout) == json.loads(first.stdout)
+    other = json.loads(CliRunner().invoke(app, ["ritz", "--config", str(tmp_path / "config.toml"), "--force", "10",
+                                                "--json"]).stdout)
+    assert [r["force_N"] for r in other["results"]] == [10.0] and other["model"]["diameter_mm"] == 5.5
+    assert other["model"]["cos_term"] is False
+    bad = tmp_path / "bad.toml"
+    bad.write_text("diameter_mm = 5.0\ncolour = 'red'\n")
+    r = CliRunner().invoke(app, ["ritz", "--config", str(bad)])
+    assert isinstance(r.exception, InputError) and "colour" in str(r.exception)

@@ -60,7 +60,7 @@ def register(app: typer.Typer, groups) -> None:
                                                       "slip per load increment (> 0; default 0.001) below which "
                                                       "an interface sticks."),
         config_file: Optional[Path] = typer.Option(None, "--config", help="config.toml of an earlier `fe needle "
-                                                   "--out` run ([needle_model], [contact]; units mm, N): runs "
+                                                   "--out` run (tables needle_model, contact; units mm, N): runs "
                                                    "it again; options given on the command line override it."),
     ):
         """Solve the needle-tissue-bone model at each force; report needle, clamp and tissue deformation

@@ -40,6 +40,24 @@ def _opts():
     )
 
 
+_CONFIG_KEYS = ("diameter_mm", "free_length_mm", "load_point_mm", "youngs_modulus_MPa", "cos_term", "layers",
+                "order", "tol_mm", "forces_N", "second_moment_mm4", "bending_stiffness_Nmm2")
+
+
+def _read_config(path) -> dict:
+    """The config.toml `ritz --plot` writes (derived second_moment/bending_stiffness are ignored)."""
+    from needletissue.runinfo import read_toml
+
+    c = read_toml(path)
+    bad = sorted(set(c) - set(_CONFIG_KEYS))
+    if bad:
+        raise InputError(f"{path}: {bad[0]}", f"unknown field; allowed: {', '.join(_CONFIG_KEYS)}")
+    if not all(isinstance(la, dict) and {"name", "thickness_mm", "k_N_per_mm2"} <= set(la)
+               for la in c.get("layers", [])):
+        raise InputError(f"{path}: layers", "each layer needs name, thickness_mm, k_N_per_mm2")
+    return c
+
+
 def _model_json(model, order, tol):
     d = model.to_dict()
     d["order"] = str(order)
@@ -71,10 +89,27 @@ def register(app: typer.Typer, groups) -> None:
         json_out: bool = o["json_out"],
         plot: Optional[Path] = typer.Option(None, "--plot", help="Draw v(z) per force (paper Fig. 5) to "
                                             "FILE.png; config.toml, versions.json, results.json beside it."),
+        config_file: Optional[Path] = typer.Option(None, "--config", help="config.toml written by an earlier "
+                                                   "`ritz --plot` (model, order, forces; mm, N, MPa): solves it "
+                                                   "again; options given on the command line override it."),
     ):
         """Needle deflection v(z) for each --force (mm, N, MPa)."""
         if ctx.invoked_subcommand is not None:
             return
+        if config_file is not None:
+            from needletissue.commands import from_command_line
+
+            c, given = _read_config(config_file), set(from_command_line(ctx))
+            keep = lambda name, value, key: value if name in given or key not in c else c[key]  # noqa: E731
+            force = keep("force", force, "forces_N")
+            diameter = keep("diameter", diameter, "diameter_mm")
+            free_length = keep("free_length", free_length, "free_length_mm")
+            load_point = keep("load_point", load_point, "load_point_mm")
+            youngs_modulus = keep("youngs_modulus", youngs_modulus, "youngs_modulus_MPa")
+            order = str(keep("order", order, "order"))
+            no_cos = no_cos if "no_cos" in given or "cos_term" not in c else not c["cos_term"]
+            if "layer" not in given and "layers" in c:
+                layer = [f"{la['name']}:{la['thickness_mm']}:{la['k_N_per_mm2']}" for la in c["layers"]]
         if not force:
             raise InputError("--force", "give at least one --force in N (e.g. --force 100 --force 300)")
         from needletissue.ritz import DEFAULT_TOL_MM, parse_order, solve_forces
@@ -100,7 +135,7 @@ def register(app: typer.Typer, groups) -> None:
 
             plot = Path(plot)
             plot_deflection(results, path=plot, model=model)
-            write_run_files(plot.parent, out["model"], out)
+            write_run_files(plot.parent, {**out["model"], "forces_N": force}, out)  # `ritz --config` reads it
         if json_out:
             print(json.dumps(out, indent=2))
             return

@@ -79,11 +79,11 @@ class FEResult:
             stable[ids] = ok
             frac = float(vol[ids][~ok].sum() / vol[ids].sum()) if len(ids) else 0.0
             self.drucker_unstable_fraction[region] = frac
-            if frac > 0:
-                warnings.warn(f"{region} ({mat.name}, {mat.model}): {100 * frac:.3g} % of its volume is beyond "
-                              f"the Drucker-stable range at load factor {self.load_factor:g} (principal "
-                              f"stretches {lam[ids][~ok].min():.3g}..{lam[ids][~ok].max():.3g}); results there "
-                              "depend on a law outside its valid range", UnstableMaterialWarning, stacklevel=2)
+            if frac > 0:  # one text per region: Python shows it once, not at every load step
+                warnings.warn(f"{region} ({mat.name}, {mat.model}) is stretched beyond its Drucker-stable range "
+                              "in part of its volume: results there rest on the law outside its valid range "
+                              "(fraction per load: drucker_unstable_volume_fraction)", UnstableMaterialWarning,
+                              stacklevel=2)
         self.cell_data["drucker_stable"] = stable
         return self
 

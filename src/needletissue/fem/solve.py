@@ -285,8 +285,10 @@ def _result(model, loads, fvec, lam, nsteps, nit, ncut, wall, linear, newton_s, 
     ncell = len(mesh.cells)
     vm = np.zeros(ncell)
     stretch = np.zeros((ncell, 3))
-    cauchy = np.zeros((ncell, 9))  # for ParaView: row-major 3x3 tensors, cell means of the quadrature points
-    strain = np.zeros((ncell, 9))
+    # for ParaView: row-major 3x3 tensors, cell means over the quadrature points; float32 halves their
+    # memory (2 x 36 bytes a cell: 100 MB per load at the paper's 1.33 M elements)
+    cauchy = np.zeros((ncell, 9), np.float32)
+    strain = np.zeros((ncell, 9), np.float32)
     for r, ids in mesh.regions.items():
         body = model.bodies[r]
         sigma = np.asarray(body.evaluate.cauchy_stress(body.field))  # (3, 3, q, c)

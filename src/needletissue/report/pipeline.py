@@ -52,8 +52,8 @@ class Comparison:
         if rel is None or self.tolerance_percent is None:
             return ""
         if abs(rel) <= self.tolerance_percent:
-            return f"agrees (within {self.tolerance_percent:g} %)"
-        return f"differs ({rel:+.0f} %, tolerance {self.tolerance_percent:g} %)"
+            return f"agrees (within {self.tolerance_percent:.3g} %)"
+        return f"differs ({rel:+.0f} %, tolerance {self.tolerance_percent:.3g} %)"
 
     @property
     def paper(self):
@@ -111,7 +111,7 @@ def _run_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext") -> St
 
     pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"))
     try:
-        fut = pool.submit(stage.run, cfg, StageContext(ctx.run_dir, ctx.ct, ctx.labels))
+        fut = pool.submit(_run_noting_warnings, stage.run, cfg, StageContext(ctx.run_dir, ctx.ct, ctx.labels))
         try:
             return fut.result()
         except BrokenProcessPool:
@@ -122,6 +122,22 @@ def _run_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext") -> St
         raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _run_noting_warnings(run, cfg, ctx) -> StageResult:
+    """A stage's warnings become notes of its result (the report shows them; no stray stderr lines)."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        res = run(cfg, ctx)
+    seen = set(res.notes)
+    for w in caught:
+        note = f"warning: {w.message}"
+        if note not in seen and not issubclass(w.category, (DeprecationWarning, FutureWarning)):
+            res.notes.append(note)
+            seen.add(note)
+    return res
 
 
 def _stop_workers(pool) -> None:
@@ -239,7 +255,8 @@ def _stages(cfg, out, tmp, stages, ct, labels, progress, t0, outcomes, write_rep
             bar.start(stage)
             ts = time.perf_counter()
             try:
-                res = _run_isolated(stage, cfg, ctx) if stage.isolated else stage.run(cfg, ctx)
+                res = (_run_isolated(stage, cfg, ctx) if stage.isolated
+                       else _run_noting_warnings(stage.run, cfg, ctx))
             except Exception as exc:  # a failed stage is reported; the others still run
                 dt = time.perf_counter() - ts
                 msg = f"{type(exc).__name__}: {exc}"
