@@ -1,0 +1,408 @@
+"""Solve the needle-frame model: one wrench (control loop), several, or a batch of parameter sets.
+
+Every answer carries `error_estimate_mm` (Richardson: the solve at the model's step and at twice
+that step; RK4 converges as h^4, so the error of the fine solve is |fine - coarse| / 15) and the
+Newton iterations. A solve that does not converge raises ConvergenceError; an answer outside the
+model's validity (a needle deflection larger than the free length) raises InputError naming the force.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from needletissue.errors import ConvergenceError, InputError, check_number
+from needletissue.frame.model import (
+    CANCELLOUS_STRENGTH_MPA, CORTICAL_STRENGTH_MPA, FrameModel, shear_factor,
+)
+
+TOL = 1e-11        # Newton: scaled residual, relative to the scaled load (absolute floor 1e-14)
+MAX_CUTS = 12
+WARN_DEFLECTION_RATIO = 0.25   # beyond this fraction of the free length the springs are extrapolated
+
+
+def _kernel():
+    from needletissue.frame import kernel
+
+    return kernel
+
+
+def logm(Q: np.ndarray) -> np.ndarray:
+    """Rotation vector of a rotation matrix (inverse of Rodrigues), exact up to pi."""
+    c = max(-1.0, min(1.0, (np.trace(Q) - 1.0) / 2.0))
+    t = math.acos(c)
+    v = np.array([Q[2, 1] - Q[1, 2], Q[0, 2] - Q[2, 0], Q[1, 0] - Q[0, 1]])
+    if t < 1e-7:
+        return 0.5 * v
+    if math.pi - t < 1e-6:  # near pi: axis from the symmetric part
+        B = (Q + np.eye(3)) / 2
+        axis = np.sqrt(np.maximum(np.diag(B), 0.0))
+        k = int(np.argmax(axis))
+        axis = B[:, k] / max(axis[k], 1e-300)
+        return t * axis / np.linalg.norm(axis)
+    return t / (2.0 * math.sin(t)) * v
+
+
+def expm(w) -> np.ndarray:
+    w = np.asarray(w, float)
+    t = float(np.linalg.norm(w))
+    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    if t < 1e-8:
+        return np.eye(3) + K + K @ K / 2
+    return np.eye(3) + math.sin(t) / t * K + (1 - math.cos(t)) / t**2 * K @ K
+
+
+@dataclass(frozen=True)
+class Discretisation:
+    """What the compiled kernel needs for one model and one step size."""
+
+    SZ: np.ndarray   # segment ends (segments + 1)
+    SK: np.ndarray   # kind: 0 bone, 1 tissue, 2 free
+    SKH: np.ndarray  # lateral k, N/mm^2 (factors applied)
+    SKZ: np.ndarray  # axial k, N/mm^2
+    SKT: np.ndarray  # torsional k, N mm/mm per rad
+    SN: np.ndarray   # RK4 steps per segment (even)
+    P: np.ndarray    # constants (kernel.EI ...)
+    NX: np.ndarray   # needle (x, y)
+    P0: np.ndarray   # load point
+    names: tuple     # segment names
+    z: np.ndarray    # reference z of every node
+
+
+def discretise(model: FrameModel, refine: int = 1) -> Discretisation:
+    """Segments along a needle and the constants, `refine` x the model's step counts."""
+    k = _kernel()
+    m = model
+    EI = m.bending_stiffness_Nmm2
+    found = m.foundation
+    segs = []  # (name, z0, z1, kind, kh, kz, kt)
+    a = m.foundation_factor
+    if m.root == "bone":
+        for name, z0, z1 in (("cancellous", -m.depth_mm, -m.cortex_mm), ("cortex", -m.cortex_mm, 0.0)):
+            segs.append((name, z0, z1, 0, a * found[f"{name}_lateral"], a * found[f"{name}_axial"],
+                         a * found[f"{name}_torsion"]))
+    z = 0.0
+    if m.tissue:
+        for la in m.layers:
+            segs.append((la.name, z, z + la.thickness_mm, 1, m.tissue_factor * la.k_N_per_mm2, 0.0, 0.0))
+            z += la.thickness_mm
+    if m.clamp_bottom_mm > z:
+        segs.append(("free", z, m.clamp_bottom_mm, 2, 0.0, 0.0, 0.0))
+    SZ = np.array([s[1] for s in segs] + [segs[-1][2]], float)
+    SN = []
+    for name, z0, z1, kind, kh, kz, kt in segs:
+        h = m.step_mm
+        if kind == 0:  # resolve the foundation's decay lengths: bending, axial, torsion
+            lam = min((4 * EI / kh) ** 0.25, math.sqrt(m.youngs_modulus_MPa * m.area_mm2 / kz),
+                      math.sqrt(2 * m.shear_modulus_MPa * m.second_moment_mm4 / kt))
+            h = min(h, 0.5 * lam)
+        n = 2 * max(1, math.ceil((z1 - z0) / (2 * h)))
+        SN.append(n * refine)
+    SN = np.array(SN, np.int64)
+    kGA = shear_factor(m.poisson) * m.shear_modulus_MPa * m.area_mm2
+    L = m.free_length_mm
+    P = np.zeros(k.NP)
+    P[k.EI] = EI
+    P[k.GJ] = m.shear_modulus_MPa * 2 * m.second_moment_mm4
+    P[k.EA] = m.youngs_modulus_MPa * m.area_mm2
+    P[k.KGA] = kGA
+    P[k.SHEAR] = 1.0 if m.shear else 0.0
+    P[k.KTIP] = m.foundation_factor * found["tip_axial_N_per_mm"] if m.root == "bone" else 0.0
+    P[k.LS] = L
+    P[k.FS] = EI / L**2
+    P[k.MS] = EI / L
+    P[k.Z0] = SZ[0]
+    P[k.ZC] = m.clamp_bottom_mm
+    P[k.RIGID] = 1.0 if m.root == "rigid" else 0.0
+    zs = [np.array([SZ[0]])]
+    for g in range(len(segs)):
+        zs.append(np.linspace(SZ[g], SZ[g + 1], SN[g] + 1)[1:])
+    return Discretisation(SZ, np.array([s[3] for s in segs], np.int64), np.array([s[4] for s in segs], float),
+                          np.array([s[5] for s in segs], float), np.array([s[6] for s in segs], float), SN, P, np.array(m.needle_xy, float),
+                          np.array(m.load_point_mm, float), tuple(s[0] for s in segs), np.concatenate(zs))
+
+
+@dataclass(frozen=True)
+class NeedleResult:
+    """One needle. Displacements mm, rotations rad (rotation vectors), forces N, stresses MPa."""
+
+    position_mm: tuple
+    root_slope_rad: float        # tilt of the axis at the bone surface z = 0 from the z axis
+    root_rotation_rad: tuple     # rotation vector of the section at z = 0
+    tip_rotation_rad: tuple      # rotation vector at the tip in the bone (rigid root: zeros)
+    max_deflection_mm: float     # largest |u| over the axis, the part in the clamp included
+    max_stress_MPa: float        # largest von Mises stress (axial + bending + torsion) of the section
+    z_max_stress_mm: float
+    layer_reaction_N: dict       # segment -> force it exerts on the needle (3); "tip": end bearing
+    curve_z_mm: np.ndarray       # reference z of the axis points, root .. clamp top
+    curve_u_mm: np.ndarray       # (points, 3) displacement of the axis points
+
+    def to_json(self) -> dict:
+        return {
+            "position_mm": list(self.position_mm),
+            "root_slope_rad": self.root_slope_rad,
+            "root_rotation_rad": list(self.root_rotation_rad),
+            "tip_rotation_rad": list(self.tip_rotation_rad),
+            "max_deflection_mm": self.max_deflection_mm,
+            "max_stress_MPa": self.max_stress_MPa,
+            "z_max_stress_mm": self.z_max_stress_mm,
+            "layer_reaction_N": {k: list(v) for k, v in self.layer_reaction_N.items()},
+            "curve": {"z_mm": self.curve_z_mm.tolist(), "displacement_mm": self.curve_u_mm.tolist()},
+        }
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One solved wrench."""
+
+    force_N: tuple
+    moment_Nmm: tuple
+    clamp_displacement_mm: tuple   # of the clamp centre (gripper faces' centre), relative to the bone
+    clamp_rotation_rad: tuple      # rotation vector of the clamp relative to the bone
+    load_point_displacement_mm: tuple
+    max_needle_deflection_mm: float
+    needle_yield_utilisation: float   # max von Mises stress / yield strength
+    bone_stress_MPa: dict             # cortex, cancellous: largest mean bearing pressure
+    bone_utilisation: float           # max over the two of stress / strength
+    bone_pose_error_mm: tuple         # where the bone fragment (point at the bone surface under the clamp
+    bone_pose_error_rad: tuple        #   centre) is minus where a rigid pin-clamp construct would put it
+    needles: tuple
+    iterations: int
+    load_steps: int
+    error_estimate_mm: float
+    warnings: tuple = ()
+    state: np.ndarray = field(default=None, repr=False)  # Newton unknowns (warm start)
+
+    def to_json(self) -> dict:
+        return {
+            "force_N": list(self.force_N),
+            "moment_Nmm": list(self.moment_Nmm),
+            "clamp_displacement_mm": list(self.clamp_displacement_mm),
+            "clamp_rotation_rad": list(self.clamp_rotation_rad),
+            "load_point_displacement_mm": list(self.load_point_displacement_mm),
+            "max_needle_deflection_mm": self.max_needle_deflection_mm,
+            "needle_yield_utilisation": self.needle_yield_utilisation,
+            "bone_stress_MPa": dict(self.bone_stress_MPa),
+            "bone_utilisation": self.bone_utilisation,
+            "bone_pose_error_mm": list(self.bone_pose_error_mm),
+            "bone_pose_error_rad": list(self.bone_pose_error_rad),
+            "needles": [n.to_json() for n in self.needles],
+            "iterations": self.iterations,
+            "load_steps": self.load_steps,
+            "error_estimate_mm": self.error_estimate_mm,
+            "warnings": list(self.warnings),
+        }
+
+
+def _vec(field_name: str, value, n=3) -> np.ndarray:
+    if value is None:
+        return np.zeros(n)
+    try:
+        vals = list(value)
+    except TypeError:
+        raise InputError(field_name, f"expected {n} numbers, got {value!r}") from None
+    if len(vals) != n:
+        raise InputError(field_name, f"expected {n} numbers, got {value!r}")
+    return np.array([check_number(field_name, v) for v in vals], float)
+
+
+def _run(disc: Discretisation, W: np.ndarray, y0: np.ndarray | None):
+    k = _kernel()
+    nn = disc.NX.shape[0]
+    y = np.zeros(6 * nn + 6) if y0 is None else np.array(y0, float)
+    P = disc.P
+    scale = max(np.abs(W[:3]).max() / P[k.FS], np.abs(W[3:]).max() / P[k.MS])
+    tol = max(TOL * scale, 1e-14)
+    args = (disc.NX, disc.P0, W, disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT, disc.SN, P, tol, MAX_CUTS)
+    try:
+        it, st, steps = k.solve_path(y, *args)
+        if st != k.OK and y0 is not None:  # a warm start that fails: from rest
+            y = np.zeros(6 * nn + 6)
+            it2, st, steps = k.solve_path(y, *args)
+            it += it2
+    except np.linalg.LinAlgError as exc:  # a mechanism: some motion nothing resists
+        raise ConvergenceError(f"frame Newton: singular tangent ({exc}); the construct is a mechanism "
+                               f"under force {W[:3].tolist()} N, moment {W[3:].tolist()} N mm") from None
+    if st != k.OK:
+        raise ConvergenceError(f"frame Newton did not converge for force {W[:3].tolist()} N, moment "
+                               f"{W[3:].tolist()} N mm after {it} iterations and {MAX_CUTS} load cut-backs")
+    return y, it, steps
+
+
+def _clamp(disc, y):
+    k = _kernel()
+    nn = disc.NX.shape[0]
+    c = y[6 * nn: 6 * nn + 3] * disc.P[k.LS]
+    phi = y[6 * nn + 3:].copy()
+    return c, phi, expm(phi)
+
+
+def _key_numbers(model, disc, y):
+    """Clamp-centre displacement and the max needle deflection: what the error estimate compares."""
+    k = _kernel()
+    c, phi, Q = _clamp(disc, y)
+    C = np.array(model.clamp_centre_mm)
+    uC = c + (Q - np.eye(3)) @ (C - disc.P0)
+    store = np.empty((disc.NX.shape[0], disc.z.size, 18))
+    k.states(y, disc.NX, disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT, disc.SN, disc.P, store)
+    return uC, store, c, phi, Q
+
+
+def solve(force=None, moment=None, model: FrameModel | None = None, *, error_estimate: bool = True,
+          initial=None) -> FrameResult:
+    """The construct under one wrench: force (N, 3) and moment (N mm, 3) at model.load_point_mm.
+
+    initial: the `state` of an earlier result (warm start: the control loop's previous answer).
+    error_estimate=False skips the coarse solve (half the cost; error_estimate_mm is then NaN).
+    """
+    model = FrameModel() if model is None else model
+    F = _vec("force_N", force)
+    M = _vec("moment_Nmm", moment)
+    W = np.concatenate([F, M])
+    _check_range(model, F, M)
+    fine = _cached_disc(model, 2)
+    y0 = None if initial is None else np.asarray(initial, float)
+    err = float("nan")
+    if error_estimate:
+        coarse = _cached_disc(model, 1)
+        yc, itc, _ = _run(coarse, W, y0)
+        y, it, steps = _run(fine, W, yc)
+        it += itc
+    else:
+        y, it, steps = _run(fine, W, y0)
+    uC, store, c, phi, Q = _key_numbers(model, fine, y)
+    res = _post(model, fine, W, y, store, c, phi, Q, uC, it, steps)
+    if error_estimate:
+        uCc, storec, *_ = _key_numbers(model, coarse, yc)
+        dmax = abs(_max_deflection(model, coarse, storec, *_clamp(coarse, yc))[0] - res.max_needle_deflection_mm)
+        err = max(float(np.linalg.norm(uC - uCc)), dmax) / 15.0
+        res = _replace(res, error_estimate_mm=err)
+    return res
+
+
+# Validity range (stated in docs/frame.md): a pin whose linear deflection estimate exceeds this many
+# free lengths would fold over; its answer is not in the model's range and is refused before solving.
+MAX_LINEAR_DEFLECTION_RATIO = 3.0
+
+
+def _check_range(model: FrameModel, F, M):
+    L = model.clamp_bottom_mm + (model.depth_mm if model.root == "bone" else 0.0)
+    EI, n = model.bending_stiffness_Nmm2, model.needles
+    est = (math.hypot(F[0], F[1]) * L**3 / (3 * EI) + math.hypot(M[0], M[1]) * L**2 / (2 * EI)) / n
+    if est > MAX_LINEAR_DEFLECTION_RATIO * model.free_length_mm:
+        raise InputError("force_N", f"outside the model's validity: force {F.tolist()} N, moment {M.tolist()} N mm "
+                         f"would bend the pins by about {est:.3g} mm (linear estimate), more than "
+                         f"{MAX_LINEAR_DEFLECTION_RATIO:g} x free length {model.free_length_mm:g} mm")
+
+
+def _replace(res, **kw):
+    from dataclasses import replace
+
+    return replace(res, **kw)
+
+
+def _cached_disc(model: FrameModel, refine: int) -> Discretisation:
+    cache = model.__dict__.setdefault("_disc_cache", {})  # frozen dataclass: per-instance cache
+    if refine not in cache:
+        cache[refine] = discretise(model, refine)
+    return cache[refine]
+
+
+def _max_deflection(model, disc, store, c, phi, Q):
+    """Per needle: largest |u| over the axis nodes and over the part in the clamp (rigid with it)."""
+    out = []
+    for i in range(disc.NX.shape[0]):
+        X = np.column_stack([np.full(disc.z.size, disc.NX[i, 0]), np.full(disc.z.size, disc.NX[i, 1]), disc.z])
+        u = store[i, :, :3] - X
+        um = float(np.sqrt((u**2).sum(1)).max())
+        for zc in (model.clamp_bottom_mm, model.free_length_mm):
+            Xc = np.array([disc.NX[i, 0], disc.NX[i, 1], zc])
+            um = max(um, float(np.linalg.norm(c + (Q - np.eye(3)) @ (Xc - disc.P0))))
+        out.append(um)
+    return max(out), out
+
+
+def _post(model, disc, W, y, store, c, phi, Q, uC, it, steps) -> FrameResult:
+    nn = disc.NX.shape[0]
+    gmax, per = _max_deflection(model, disc, store, c, phi, Q)
+    L = model.free_length_mm
+    if not gmax <= L:
+        raise InputError("force_N", f"outside the model's validity: the needle deflects {gmax:.4g} mm, more "
+                         f"than its free length {L:g} mm (force {W[:3].tolist()} N, moment {W[3:].tolist()} N mm)")
+    r, A, J = model.diameter_mm / 2, model.area_mm2, 2 * model.second_moment_mm4
+    I = model.second_moment_mm4
+    z = disc.z
+    i0 = int(np.argmin(np.abs(z)))  # the bone surface node (a segment end unless root is rigid: z0 = 0)
+    bounds = np.concatenate([[0], np.cumsum(disc.SN)])
+    needles = []
+    smax_all = 0.0
+    bone = {"cortex": 0.0, "cancellous": 0.0}
+    for i in range(nn):
+        S = store[i]
+        R = S[:, 3:12].reshape(-1, 3, 3)
+        nl = np.einsum("kji,kj->ki", R, S[:, 12:15])
+        ml = np.einsum("kji,kj->ki", R, S[:, 15:18])
+        sig = np.abs(nl[:, 2]) / A + np.hypot(ml[:, 0], ml[:, 1]) * r / I
+        tau = np.abs(ml[:, 2]) * r / J
+        vm = np.sqrt(sig**2 + 3 * tau**2)
+        j = int(np.argmax(vm))
+        smax_all = max(smax_all, float(vm[j]))
+        t0 = R[i0][:, 2]
+        slope = math.atan2(math.hypot(t0[0], t0[1]), t0[2])
+        X = np.column_stack([np.full(z.size, disc.NX[i, 0]), np.full(z.size, disc.NX[i, 1]), z])
+        u = S[:, :3] - X
+        react = {}
+        for g, name in enumerate(disc.names):
+            if name == "free":
+                continue
+            a, b = bounds[g], bounds[g + 1]
+            react[name] = tuple((S[a, 12:15] - S[b, 12:15]).tolist())
+            if name in bone:
+                sl = slice(a, b + 1)
+                pr = disc.SKH[g] * np.hypot(u[sl, 0], u[sl, 1]) / model.diameter_mm
+                bone[name] = max(bone[name], float(pr.max()))
+        if model.root == "bone":
+            react["tip"] = tuple((-S[0, 12:15]).tolist())
+        # the part in the clamp moves with it
+        zt = np.array([model.clamp_bottom_mm, model.free_length_mm])[1:] if model.clamp_length_mm > 0 else np.empty(0)
+        Xt = np.column_stack([np.full(zt.size, disc.NX[i, 0]), np.full(zt.size, disc.NX[i, 1]), zt])
+        ut = c + (Xt - disc.P0) @ (Q - np.eye(3)).T
+        needles.append(NeedleResult(
+            position_mm=tuple(disc.NX[i].tolist()), root_slope_rad=slope,
+            root_rotation_rad=tuple(logm(R[i0]).tolist()), tip_rotation_rad=tuple(logm(R[0]).tolist()),
+            max_deflection_mm=per[i], max_stress_MPa=float(vm[j]), z_max_stress_mm=float(z[j]),
+            layer_reaction_N=react, curve_z_mm=np.concatenate([z, zt]), curve_u_mm=np.vstack([u, ut])))
+    util = smax_all / model.yield_MPa
+    bone_util = max(bone["cortex"] / CORTICAL_STRENGTH_MPA, bone["cancellous"] / CANCELLOUS_STRENGTH_MPA)
+    B = np.array([*model.centre_xy, 0.0])
+    e_t = -(c + (Q - np.eye(3)) @ (B - disc.P0))
+    warns = []
+    if util > 1:
+        warns.append(f"needle yields: von Mises {smax_all:.0f} MPa > yield {model.yield_MPa:g} MPa "
+                     f"(utilisation {util:.2f}); the elastic pin is not valid here, the pin bends for good")
+    if bone_util > 1:
+        warns.append(f"bone overloaded: bearing pressure cortex {bone['cortex']:.1f} MPa (strength "
+                     f"{CORTICAL_STRENGTH_MPA:g}), cancellous {bone['cancellous']:.2f} MPa (strength "
+                     f"{CANCELLOUS_STRENGTH_MPA:g}); the linear bone foundation is not valid here")
+    if gmax > WARN_DEFLECTION_RATIO * L:
+        warns.append(f"needle deflection {gmax:.3g} mm is more than {WARN_DEFLECTION_RATIO:g} x free length: "
+                     "the tissue springs and bone foundation are extrapolated")
+    return FrameResult(
+        force_N=tuple(W[:3].tolist()), moment_Nmm=tuple(W[3:].tolist()),
+        clamp_displacement_mm=tuple(uC.tolist()), clamp_rotation_rad=tuple(phi.tolist()),
+        load_point_displacement_mm=tuple(c.tolist()), max_needle_deflection_mm=gmax,
+        needle_yield_utilisation=util, bone_stress_MPa=bone, bone_utilisation=bone_util,
+        bone_pose_error_mm=tuple(e_t.tolist()), bone_pose_error_rad=tuple((-phi).tolist()),
+        needles=tuple(needles), iterations=int(it), load_steps=int(steps), error_estimate_mm=float("nan"),
+        warnings=tuple(warns), state=y)
+
+
+def solve_wrenches(forces, moments=None, model: FrameModel | None = None) -> list[FrameResult]:
+    """One result per wrench (forces (k, 3) N; moments (k, 3) N mm or None), same model."""
+    forces = [list(f) for f in forces]
+    moments = [None] * len(forces) if moments is None else list(moments)
+    if len(moments) != len(forces):
+        raise InputError("moment_Nmm", f"need one moment per force ({len(forces)}), got {len(moments)}")
+    return [solve(f, m, model) for f, m in zip(forces, moments)]
