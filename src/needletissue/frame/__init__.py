@@ -16,8 +16,8 @@ from needletissue.frame.model import FrameModel
 
 _LAZY = {
     "solve": "solver", "solve_wrenches": "solver", "FrameResult": "solver", "NeedleResult": "solver",
-    "compensate": "compensate", "Compensation": "compensate",
-    "calibrate": "calibrate", "CalibrationPoint": "calibrate", "Calibration": "calibrate",
+    "compensate": "aim", "Compensation": "aim",
+    "calibrate": "fitting", "calibration": "fitting", "CalibrationPoint": "fitting", "Calibration": "fitting",
     "plot_frame": "plot",
 }
 
