@@ -79,7 +79,7 @@ def test_symmetry_and_sign():
 
 def test_equilibrium_of_the_supports():
     """All supports together (bone segments, tip bearing, tissue layers) balance the applied force."""
-    m = FrameModel(needles=3, spacing_mm=25.0)
+    m = FrameModel(needles=3, spacing_mm=25.0, step_mm=2.0)  # fine nodes for the trapezoid check below
     F = np.array([120.0, -200.0, 80.0])
     r = frame.solve(F, (2000.0, -1000.0, 300.0), model=m)
     total = sum(np.array(v) for n in r.needles for v in n.layer_reaction_N.values())
@@ -100,13 +100,13 @@ def test_mesh_convergence_and_error_estimate():
     F = (0.0, 300.0, 0.0)
     ref = frame.solve(F, model=FrameModel(needles=1, step_mm=0.25))
     errs, ests = [], []
-    for h in (8.0, 4.0, 2.0):
+    for h in (16.0, 8.0, 4.0):
         r = frame.solve(F, model=FrameModel(needles=1, step_mm=h))
         errs.append(abs(r.max_needle_deflection_mm - ref.max_needle_deflection_mm))
         ests.append(r.error_estimate_mm)
     for e, est in zip(errs, ests):
         assert e <= 2.0 * est + 1e-9
-    assert ests[0] > ests[1] > ests[2] and ests[1] < 1e-4
+    assert ests[0] > ests[1] > ests[2] and ests[1] < 0.01  # default step 8 mm: ~1e-3 mm
 
 
 def test_stiff_bone_tends_to_rigid_root():

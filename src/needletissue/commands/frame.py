@@ -136,7 +136,8 @@ def register(app: typer.Typer, groups) -> None:
         model = _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length, layer, no_tissue,
                        root, load_point, foundation_factor, tissue_factor, youngs_modulus)
         c = comp(_triple("--target", target), _triple("--target-rotation", target_rotation),
-                 _triple("--force", force), _triple("--moment", moment), model, wrench_frame=wrench_frame)
+                 _triple("--force", force), _triple("--moment", moment), model, wrench_frame=wrench_frame,
+                 detail=True)
         out = {"model": model.to_dict(), **c.to_json()}
         _warn([c.result])
         if json_out:

@@ -15,7 +15,8 @@ The compiled kernel (Numba) is imported on first solve, so that `needletissue --
 from needletissue.frame.model import FrameModel
 
 _LAZY = {
-    "solve": "solver", "solve_wrenches": "solver", "FrameResult": "solver", "NeedleResult": "solver",
+    "solve": "solver", "solve_wrenches": "solver", "solve_batch": "solver", "pose": "solver",
+    "BatchResult": "solver", "FrameResult": "solver", "NeedleResult": "solver",
     "compensate": "aim", "Compensation": "aim",
     "calibrate": "fitting", "calibration": "fitting", "CalibrationPoint": "fitting", "Calibration": "fitting",
     "plot_frame": "plot",

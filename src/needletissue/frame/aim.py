@@ -23,7 +23,7 @@ import numpy as np
 
 from needletissue.errors import ConvergenceError, InputError
 from needletissue.frame.model import FrameModel
-from needletissue.frame.solver import FrameResult, _vec, expm, logm, solve
+from needletissue.frame.solver import FrameResult, _vec, expm, logm, pose, solve
 
 FRAMES = ("world", "clamp")
 
@@ -36,22 +36,26 @@ class Compensation:
     residual_rad: tuple            # predicted bone rotation minus target (rotation vector of R_pred R_b^T)
     correction_mm: tuple           # command minus the naive rigid command (what the deflection costs)
     iterations: int                # fixed-point passes (1 for a world-frame wrench)
-    newton_iterations: int
-    result: FrameResult            # the frame solve at the final wrench (bone frame)
+    state: np.ndarray              # Newton unknowns of the last solve (warm start of the next call)
+    result: FrameResult | None     # the full frame solve at the final wrench (bone frame), detail=True
 
     def to_json(self) -> dict:
         return {"clamp_displacement_mm": list(self.clamp_displacement_mm),
                 "clamp_rotation_rad": list(self.clamp_rotation_rad), "residual_mm": list(self.residual_mm),
                 "residual_rad": list(self.residual_rad), "correction_mm": list(self.correction_mm),
-                "iterations": self.iterations, "newton_iterations": self.newton_iterations,
-                "result": self.result.to_json()}
+                "iterations": self.iterations,
+                "result": None if self.result is None else self.result.to_json()}
 
 
 def compensate(target_mm=(0.0, 0.0, 0.0), target_rad=(0.0, 0.0, 0.0), force=None, moment=None,
                model: FrameModel | None = None, *, wrench_frame: str = "world", tol_rad: float = 1e-10,
-               max_iter: int = 30, initial=None, error_estimate: bool = False) -> Compensation:
+               max_iter: int = 30, initial=None, detail: bool = False,
+               error_estimate: bool = False) -> Compensation:
     """Clamp pose to command so that the bone point B moves by target_mm and the bone turns by
-    target_rad (rotation vector, about B), under the wrench force (N) / moment (N mm) at the load point."""
+    target_rad (rotation vector, about B), under the wrench force (N) / moment (N mm) at the load point.
+
+    detail=False (the control loop): only the compiled pose solve; `result` is None and `state` the
+    Newton unknowns for the next call's `initial`. detail=True: `result` is the full FrameResult."""
     model = FrameModel() if model is None else model
     if wrench_frame not in FRAMES:
         raise InputError("wrench_frame", f"must be one of {FRAMES}, got {wrench_frame!r}")
@@ -63,12 +67,15 @@ def compensate(target_mm=(0.0, 0.0, 0.0), target_rad=(0.0, 0.0, 0.0), force=None
     C = np.array(model.clamp_centre_mm)
     Q = np.eye(3)
     state = initial
-    newton = 0
     for it in range(1, max_iter + 1):
         Rw = R_b.T if wrench_frame == "world" else Q
-        r = solve(Rw @ F, Rw @ M, model, initial=state, error_estimate=error_estimate)
-        state, newton = r.state, newton + r.iterations
-        Q_new = expm(r.clamp_rotation_rad)
+        if detail:
+            r = solve(Rw @ F, Rw @ M, model, initial=state, error_estimate=error_estimate)
+            state, uC, rot = r.state, np.array(r.clamp_displacement_mm), r.clamp_rotation_rad
+        else:
+            uC, rot, _, state = pose(Rw @ F, Rw @ M, model, initial=state)
+            r = None
+        Q_new = expm(rot)
         change = float(np.linalg.norm(logm(Q_new @ Q.T)))
         Q_used, Q = Q, Q_new
         if wrench_frame == "world" or change <= tol_rad:
@@ -76,7 +83,6 @@ def compensate(target_mm=(0.0, 0.0, 0.0), target_rad=(0.0, 0.0, 0.0), force=None
     else:
         raise ConvergenceError(f"compensate: the clamp-frame wrench did not settle in {max_iter} passes "
                                f"(last change {change:.3g} rad)")
-    uC = np.array(r.clamp_displacement_mm)
     C_cmd = B + t_b + R_b @ (C + uC - B)
     R_cmd = R_b @ Q
     # prediction: the wrench the sensor would see at the commanded pose is Q_cmd-rotated; the last solve
@@ -84,9 +90,8 @@ def compensate(target_mm=(0.0, 0.0, 0.0), target_rad=(0.0, 0.0, 0.0), force=None
     if wrench_frame == "world":
         res_t, res_r = np.zeros(3), np.zeros(3)
     else:
-        r2 = solve(Q @ F, Q @ M, model, initial=state, error_estimate=False)
-        newton += r2.iterations
-        u2, Q2 = np.array(r2.clamp_displacement_mm), expm(r2.clamp_rotation_rad)
+        u2, rot2, _, _ = pose(Q @ F, Q @ M, model, initial=state)
+        Q2 = expm(rot2)
         R_pred = R_cmd @ Q2.T
         B_pred = C_cmd - R_pred @ (C + u2 - B)
         res_t = B_pred - (B + t_b)
@@ -94,4 +99,4 @@ def compensate(target_mm=(0.0, 0.0, 0.0), target_rad=(0.0, 0.0, 0.0), force=None
         del Q_used
     naive = B + t_b + R_b @ (C - B)
     return Compensation(tuple((C_cmd - C).tolist()), tuple(logm(R_cmd).tolist()), tuple(res_t.tolist()),
-                        tuple(res_r.tolist()), tuple((C_cmd - naive).tolist()), it, newton, r)
+                        tuple(res_r.tolist()), tuple((C_cmd - naive).tolist()), it, state, r)

@@ -356,3 +356,171 @@ def states(y, NX, SZ, SK, SKH, SKZ, SKT, SN, P, store):
     end = np.empty(18)
     for k in range(NX.shape[0]):
         integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, end, store[k], True)
+
+
+@njit(cache=True)
+def jacobian(y, lam, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, J):
+    """Forward-difference Jacobian of the residual at y into J (the tangent Newton uses)."""
+    nn = NX.shape[0]
+    N = 6 * nn + 6
+    E = np.empty((nn, 18))
+    E2 = np.empty((nn, 18))
+    dummy = np.empty((1, 18))
+    res = np.empty(N)
+    r2 = np.empty(N)
+    a = np.empty(6)
+    for k in range(nn):
+        integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k], dummy, False)
+    residual(E, y[6 * nn:], NX, P0, W, lam, P, res)
+    for k in range(nn):
+        for j in range(6):
+            for i in range(6):
+                a[i] = y[6 * k + i]
+            a[j] += _FD
+            for q in range(nn):
+                for i in range(18):
+                    E2[q, i] = E[q, i]
+            integrate(a, NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E2[k], dummy, False)
+            residual(E2, y[6 * nn:], NX, P0, W, lam, P, r2)
+            for i in range(N):
+                J[i, 6 * k + j] = (r2[i] - res[i]) / _FD
+    yc = y[6 * nn:].copy()
+    for j in range(6):
+        yc[j] += _FD
+        residual(E, yc, NX, P0, W, lam, P, r2)
+        yc[j] -= _FD
+        for i in range(N):
+            J[i, 6 * nn + j] = (r2[i] - res[i]) / _FD
+
+
+@njit(cache=True)
+def broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, maxit):
+    """Quasi-Newton at the full load from y (in place) with the inverse tangent H (in place, updated by
+    Broyden's 'good' rank-one formula): one integration per needle and iteration. For the control loop:
+    H from the unloaded state (a model constant) or from the last solve. Returns (iterations, status)."""
+    nn = NX.shape[0]
+    N = 6 * nn + 6
+    E = np.empty((nn, 18))
+    dummy = np.empty((1, 18))
+    res = np.empty(N)
+    rnew = np.empty(N)
+    s = np.empty(N)
+    dr = np.empty(N)
+    Hd = np.empty(N)
+    sH = np.empty(N)
+    for k in range(nn):
+        integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k], dummy, False)
+    residual(E, y[6 * nn:], NX, P0, W, 1.0, P, res)
+    rn = _norm(res)
+    for it in range(maxit):
+        if not np.isfinite(rn):
+            return it, NOT_FINITE
+        if rn <= tol:
+            return it, OK
+        for i in range(N):
+            v = 0.0
+            for j in range(N):
+                v -= H[i, j] * res[j]
+            s[i] = v
+        for i in range(N):
+            y[i] += s[i]
+        for k in range(nn):
+            integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k], dummy, False)
+        residual(E, y[6 * nn:], NX, P0, W, 1.0, P, rnew)
+        rn2 = _norm(rnew)
+        if not (rn2 < 10.0 * rn + 1e-300):
+            return it + 1, NOT_FINITE
+        for i in range(N):
+            dr[i] = rnew[i] - res[i]
+        # H += (s - H dr) s^T H / (s^T H dr)
+        den = 0.0
+        for i in range(N):
+            v = 0.0
+            for j in range(N):
+                v += H[i, j] * dr[j]
+            Hd[i] = v
+        for j in range(N):
+            v = 0.0
+            for i in range(N):
+                v += s[i] * H[i, j]
+            sH[j] = v
+        for i in range(N):
+            den += s[i] * Hd[i]
+        if den != 0.0:
+            for i in range(N):
+                c = (s[i] - Hd[i]) / den
+                for j in range(N):
+                    H[i, j] += c * sH[j]
+        for i in range(N):
+            res[i] = rnew[i]
+        rn = rn2
+    if rn <= tol:
+        return maxit, OK
+    return maxit, MAX_ITER
+
+
+@njit(cache=True)
+def key_numbers(y, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, out):
+    """Clamp-centre displacement (3), clamp rotation vector (3) and the max needle deflection into out (7),
+    compiled (the control loop's answer without the Python post-processing)."""
+    nn = NX.shape[0]
+    Q = np.empty((3, 3))
+    expm(y[6 * nn + 3: 6 * nn + 6], Q)
+    c = np.empty(3)
+    for i in range(3):
+        c[i] = y[6 * nn + i] * P[LS]
+    for i in range(3):
+        v = c[i]
+        for j in range(3):
+            v += (Q[i, j] - (1.0 if i == j else 0.0)) * (C[j] - P0[j])
+        out[i] = v
+        out[3 + i] = y[6 * nn + 3 + i]
+    nodes = 1
+    for g in range(SN.shape[0]):
+        nodes += SN[g]
+    store = np.empty((nodes, 18))
+    end = np.empty(18)
+    best = 0.0
+    for k in range(nn):
+        integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, end, store, True)
+        q = 0
+        z = SZ[0]
+        best = max(best, (store[0, 0] - NX[k, 0]) ** 2 + (store[0, 1] - NX[k, 1]) ** 2 + (store[0, 2] - z) ** 2)
+        for g in range(SN.shape[0]):
+            h = (SZ[g + 1] - SZ[g]) / SN[g]
+            for st in range(SN[g]):
+                q += 1
+                z = SZ[g] + (st + 1) * h
+                d = (store[q, 0] - NX[k, 0]) ** 2 + (store[q, 1] - NX[k, 1]) ** 2 + (store[q, 2] - z) ** 2
+                best = max(best, d)
+        X = np.array([NX[k, 0] - P0[0], NX[k, 1] - P0[1], zc_top - P0[2]])
+        d = 0.0
+        for i in range(3):
+            v = c[i]
+            for j in range(3):
+                v += (Q[i, j] - (1.0 if i == j else 0.0)) * X[j]
+            d += v * v
+        best = max(best, d)
+    out[6] = np.sqrt(best)
+
+
+@njit(cache=True)
+def batch(F, M, y0, H0, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, out, status):
+    """N wrenches (rows of F, M) with one model: Broyden from the unloaded state and tangent for each,
+    Newton with load stepping when that fails. out (N, 7) as key_numbers; status (N, 2): iterations, code."""
+    W = np.empty(6)
+    for m in range(F.shape[0]):
+        for i in range(3):
+            W[i] = F[m, i]
+            W[3 + i] = M[m, i]
+        y = y0.copy()
+        H = H0.copy()
+        it, st = broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol[m], 40)
+        if st != OK:
+            y = y0.copy()
+            it2, st, steps = solve_path(y, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol[m], 12)
+            it += it2
+        status[m, 0] = it
+        status[m, 1] = st
+        if st == OK:
+            key_numbers(y, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, out[m])

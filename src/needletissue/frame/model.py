@@ -111,7 +111,7 @@ class FrameModel:
     shear: bool = True          # Timoshenko shear and axial strain (False: Kirchhoff, inextensible)
     clamp_width_mm: float = DEFAULT_CLAMP_WIDTH_MM
     clamp_overhang_mm: float = DEFAULT_CLAMP_OVERHANG_MM
-    step_mm: float = 4.0        # integration step (RK4) target; halved in the error estimate
+    step_mm: float = 8.0        # integration step (RK4) target; doubled in the error estimate
     yield_MPa: float = NEEDLE_YIELD_MPA
 
     def __post_init__(self):

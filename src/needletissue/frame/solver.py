@@ -18,8 +18,10 @@ from needletissue.frame.model import (
     CANCELLOUS_STRENGTH_MPA, CORTICAL_STRENGTH_MPA, FrameModel, shear_factor,
 )
 
-TOL = 1e-11        # Newton: scaled residual, relative to the scaled load (absolute floor 1e-14)
+TOL = 1e-9        # Newton: scaled residual, relative to the scaled load (absolute floor 1e-14)
 MAX_CUTS = 12
+BROYDEN_MAXIT = 40  # then full Newton with load stepping
+WARM_REFRESH = 4    # warm starts: refresh the stored tangent when a solve needs more passes
 WARN_DEFLECTION_RATIO = 0.25   # beyond this fraction of the free length the springs are extrapolated
 
 
@@ -69,10 +71,12 @@ class Discretisation:
     P0: np.ndarray   # load point
     names: tuple     # segment names
     z: np.ndarray    # reference z of every node
+    H0: np.ndarray | None = None  # inverse tangent at rest (set on first use)
 
 
-def discretise(model: FrameModel, refine: int = 1) -> Discretisation:
-    """Segments along a needle and the constants, `refine` x the model's step counts."""
+def discretise(model: FrameModel, coarse: bool = False) -> Discretisation:
+    """Segments along a needle and the constants; coarse: half the (even) step counts, for the error
+    estimate."""
     k = _kernel()
     m = model
     EI = m.bending_stiffness_Nmm2
@@ -99,7 +103,7 @@ def discretise(model: FrameModel, refine: int = 1) -> Discretisation:
                       math.sqrt(2 * m.shear_modulus_MPa * m.second_moment_mm4 / kt))
             h = min(h, 0.5 * lam)
         n = 2 * max(1, math.ceil((z1 - z0) / (2 * h)))
-        SN.append(n * refine)
+        SN.append(n // 2 if coarse else n)
     SN = np.array(SN, np.int64)
     kGA = shear_factor(m.poisson) * m.shear_modulus_MPa * m.area_mm2
     L = m.free_length_mm
@@ -208,13 +212,53 @@ def _vec(field_name: str, value, n=3) -> np.ndarray:
     return np.array([check_number(field_name, v) for v in vals], float)
 
 
+def _tol(disc, W):
+    k = _kernel()
+    P = disc.P
+    scale = max(np.abs(W[:3]).max() / P[k.FS], np.abs(W[3:]).max() / P[k.MS])
+    return max(TOL * scale, 1e-14)
+
+
+def _inverse_tangent(disc: Discretisation) -> np.ndarray:
+    """Inverse of the tangent at the unloaded state: a constant of the model (the load enters the
+    residual additively), the start of every quasi-Newton solve."""
+    if disc.H0 is None:
+        k = _kernel()
+        N = 6 * disc.NX.shape[0] + 6
+        J = np.empty((N, N))
+        k.jacobian(np.zeros(N), 0.0, disc.NX, disc.P0, np.zeros(6), disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT,
+                   disc.SN, disc.P, J)
+        try:
+            H = np.linalg.inv(J)
+        except np.linalg.LinAlgError:
+            raise ConvergenceError("frame: singular tangent at rest; the construct is a mechanism") from None
+        object.__setattr__(disc, "H0", H)
+    return disc.H0
+
+
 def _run(disc: Discretisation, W: np.ndarray, y0: np.ndarray | None):
     k = _kernel()
     nn = disc.NX.shape[0]
     y = np.zeros(6 * nn + 6) if y0 is None else np.array(y0, float)
     P = disc.P
-    scale = max(np.abs(W[:3]).max() / P[k.FS], np.abs(W[3:]).max() / P[k.MS])
-    tol = max(TOL * scale, 1e-14)
+    tol = _tol(disc, W)
+    # quasi-Newton (Broyden) from the unloaded tangent: one integration per pin and iteration
+    # A warm start (the control loop) uses the exact inverse tangent at a recent solution instead, and
+    # refreshes it (one Jacobian: 6 integrations per pin) when the quasi-Newton needed many passes.
+    warm = disc.__dict__.get("H_warm") if y0 is not None else None
+    H = (_inverse_tangent(disc) if warm is None else warm).copy()
+    yb = y.copy()
+    it, st = k.broyden(yb, H, disc.NX, disc.P0, W, disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT, disc.SN, P,
+                       tol, BROYDEN_MAXIT)
+    if st == k.OK:
+        if y0 is not None and (warm is None or it > WARM_REFRESH):
+            J = np.empty((yb.size, yb.size))
+            k.jacobian(yb, 1.0, disc.NX, disc.P0, W, disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT, disc.SN, P, J)
+            try:
+                object.__setattr__(disc, "H_warm", np.linalg.inv(J))
+            except np.linalg.LinAlgError:
+                pass
+        return yb, it, 1
     args = (disc.NX, disc.P0, W, disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT, disc.SN, P, tol, MAX_CUTS)
     try:
         it, st, steps = k.solve_path(y, *args)
@@ -262,11 +306,11 @@ def solve(force=None, moment=None, model: FrameModel | None = None, *, error_est
     M = _vec("moment_Nmm", moment)
     W = np.concatenate([F, M])
     _check_range(model, F, M)
-    fine = _cached_disc(model, 2)
+    fine = _cached_disc(model, False)
     y0 = None if initial is None else np.asarray(initial, float)
     err = float("nan")
     if error_estimate:
-        coarse = _cached_disc(model, 1)
+        coarse = _cached_disc(model, True)
         yc, itc, _ = _run(coarse, W, y0)
         y, it, steps = _run(fine, W, yc)
         it += itc
@@ -303,11 +347,11 @@ def _replace(res, **kw):
     return replace(res, **kw)
 
 
-def _cached_disc(model: FrameModel, refine: int) -> Discretisation:
+def _cached_disc(model: FrameModel, coarse: bool) -> Discretisation:
     cache = model.__dict__.setdefault("_disc_cache", {})  # frozen dataclass: per-instance cache
-    if refine not in cache:
-        cache[refine] = discretise(model, refine)
-    return cache[refine]
+    if coarse not in cache:
+        cache[coarse] = discretise(model, coarse)
+    return cache[coarse]
 
 
 def _max_deflection(model, disc, store, c, phi, Q):
@@ -406,3 +450,74 @@ def solve_wrenches(forces, moments=None, model: FrameModel | None = None) -> lis
     if len(moments) != len(forces):
         raise InputError("moment_Nmm", f"need one moment per force ({len(forces)}), got {len(moments)}")
     return [solve(f, m, model) for f, m in zip(forces, moments)]
+
+
+@dataclass(frozen=True)
+class BatchResult:
+    """Key numbers of N wrenches, as arrays (the control loop's and the Monte Carlo's answer)."""
+
+    force_N: np.ndarray                  # (N, 3)
+    moment_Nmm: np.ndarray               # (N, 3)
+    clamp_displacement_mm: np.ndarray    # (N, 3) clamp centre, relative to the bone
+    clamp_rotation_rad: np.ndarray       # (N, 3)
+    max_needle_deflection_mm: np.ndarray  # (N,)
+    iterations: np.ndarray               # (N,)
+
+
+def solve_batch(forces, moments=None, model: FrameModel | None = None) -> BatchResult:
+    """Solve N wrenches in one compiled loop (no curves, no error estimate): forces (N, 3) N, moments
+    (N, 3) N mm or None. Same validity checks as solve(); a failure raises."""
+    model = FrameModel() if model is None else model
+    k = _kernel()
+    F = np.atleast_2d(np.asarray(forces, float))
+    M = np.zeros_like(F) if moments is None else np.atleast_2d(np.asarray(moments, float))
+    for name, a in (("force_N", F), ("moment_Nmm", M)):
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise InputError(name, f"expected an (N, 3) array, got shape {a.shape}")
+        if not np.isfinite(a).all():
+            raise InputError(name, f"must be finite, got {a[~np.isfinite(a)][0]} at row "
+                             f"{int(np.argwhere(~np.isfinite(a))[0, 0])}")
+    if F.shape != M.shape:
+        raise InputError("moment_Nmm", f"need one moment per force: {M.shape} vs {F.shape}")
+    for m in range(F.shape[0]):
+        _check_range(model, F[m], M[m])
+    disc = _cached_disc(model, False)
+    H0 = _inverse_tangent(disc)
+    W = np.hstack([F, M])
+    P = disc.P
+    tol = np.maximum(TOL * np.maximum(np.abs(F).max(1) / P[k.FS], np.abs(M).max(1) / P[k.MS]), 1e-14)
+    N = 6 * disc.NX.shape[0] + 6
+    out = np.empty((F.shape[0], 7))
+    status = np.zeros((F.shape[0], 2), np.int64)
+    k.batch(np.ascontiguousarray(F), np.ascontiguousarray(M), np.zeros(N), H0, disc.NX, disc.P0, disc.SZ, disc.SK,
+            disc.SKH, disc.SKZ, disc.SKT, disc.SN, P, np.array(model.clamp_centre_mm), model.free_length_mm, tol,
+            out, status)
+    bad = np.flatnonzero(status[:, 1] != k.OK)
+    if bad.size:
+        m = bad[0]
+        raise ConvergenceError(f"frame batch: {bad.size} of {F.shape[0]} wrenches did not converge; first row {m}: "
+                               f"force {F[m].tolist()} N, moment {M[m].tolist()} N mm")
+    over = np.flatnonzero(~(out[:, 6] <= model.free_length_mm))
+    if over.size:
+        m = over[0]
+        raise InputError("force_N", f"outside the model's validity at row {m}: deflection {out[m, 6]:.4g} mm > "
+                         f"free length {model.free_length_mm:g} mm")
+    return BatchResult(F, M, out[:, :3], out[:, 3:6], out[:, 6], status[:, 0])
+
+
+def pose(force, moment=None, model: FrameModel | None = None, initial=None):
+    """Only the clamp pose and the max deflection, compiled end to end: (clamp_displacement_mm (3),
+    clamp_rotation_rad (3), max_needle_deflection_mm, state). For the control loop."""
+    model = FrameModel() if model is None else model
+    k = _kernel()
+    F, M = _vec("force_N", force), _vec("moment_Nmm", moment)
+    _check_range(model, F, M)
+    disc = _cached_disc(model, False)
+    y, it, _ = _run(disc, np.concatenate([F, M]), None if initial is None else np.asarray(initial, float))
+    out = np.empty(7)
+    k.key_numbers(y, disc.NX, disc.P0, disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT, disc.SN, disc.P,
+                  np.array(model.clamp_centre_mm), model.free_length_mm, out)
+    if not out[6] <= model.free_length_mm:
+        raise InputError("force_N", f"outside the model's validity: deflection {out[6]:.4g} mm > free length "
+                         f"{model.free_length_mm:g} mm")
+    return out[:3], out[3:6], float(out[6]), y
