@@ -169,5 +169,8 @@ def test_yield_and_warnings():
     sigma = M * 2.5 / (math.pi * 5**4 / 64)
     assert abs(r.needle_yield_utilisation * 880.0 - sigma) / sigma < 0.05  # large rotation shortens the arm
     assert any("yields" in w for w in r.warnings)
+    # fully plastic moment sigma_y d^3 / 6 = 18.3 N m < 27 N m: a plastic hinge, at 1.7 x first yield
+    assert abs(r.needle_plastic_utilisation / r.needle_yield_utilisation - 3 * math.pi / 16) < 0.01
+    assert r.needle_plastic_utilisation > 1 and any("plastic hinge" in w for w in r.warnings)
     small = frame.solve((0, 10, 0))
     assert small.needle_yield_utilisation < 0.1 and not small.warnings

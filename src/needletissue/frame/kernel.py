@@ -251,7 +251,10 @@ def residual(E, yc, NX, P0, W, lam, P, res):
 def _norm(v):
     x = 0.0
     for i in range(v.shape[0]):
-        x = max(x, abs(v[i]))
+        a = abs(v[i])
+        if not a < np.inf:  # NaN or inf: max() would drop a NaN
+            return np.inf
+        x = max(x, a)
     return x
 
 

@@ -168,6 +168,7 @@ class FrameResult:
     load_point_displacement_mm: tuple
     max_needle_deflection_mm: float
     needle_yield_utilisation: float   # max von Mises stress / yield strength
+    needle_plastic_utilisation: float  # max bending moment / fully plastic moment sigma_y d^3 / 6
     bone_stress_MPa: dict             # cortex, cancellous: largest mean bearing pressure
     bone_utilisation: float           # max over the two of stress / strength
     bone_pose_error_mm: tuple         # where the bone fragment (point at the bone surface under the clamp
@@ -188,6 +189,7 @@ class FrameResult:
             "load_point_displacement_mm": list(self.load_point_displacement_mm),
             "max_needle_deflection_mm": self.max_needle_deflection_mm,
             "needle_yield_utilisation": self.needle_yield_utilisation,
+            "needle_plastic_utilisation": self.needle_plastic_utilisation,
             "bone_stress_MPa": dict(self.bone_stress_MPa),
             "bone_utilisation": self.bone_utilisation,
             "bone_pose_error_mm": list(self.bone_pose_error_mm),
@@ -372,6 +374,9 @@ def _post(model, disc, W, y, store, c, phi, Q, uC, it, steps) -> FrameResult:
     nn = disc.NX.shape[0]
     gmax, per = _max_deflection(model, disc, store, c, phi, Q)
     L = model.free_length_mm
+    if not (np.isfinite(gmax) and np.isfinite(store).all()):
+        raise ConvergenceError(f"frame: non-finite state after the solve (force {W[:3].tolist()} N, moment "
+                               f"{W[3:].tolist()} N mm)")
     if not gmax <= L:
         raise InputError("force_N", f"outside the model's validity: the needle deflects {gmax:.4g} mm, more "
                          f"than its free length {L:g} mm (force {W[:3].tolist()} N, moment {W[3:].tolist()} N mm)")
@@ -382,6 +387,7 @@ def _post(model, disc, W, y, store, c, phi, Q, uC, it, steps) -> FrameResult:
     bounds = np.concatenate([[0], np.cumsum(disc.SN)])
     needles = []
     smax_all = 0.0
+    mb_all = 0.0
     bone = {"cortex": 0.0, "cancellous": 0.0}
     for i in range(nn):
         S = store[i]
@@ -393,6 +399,7 @@ def _post(model, disc, W, y, store, c, phi, Q, uC, it, steps) -> FrameResult:
         vm = np.sqrt(sig**2 + 3 * tau**2)
         j = int(np.argmax(vm))
         smax_all = max(smax_all, float(vm[j]))
+        mb_all = max(mb_all, float(np.hypot(ml[:, 0], ml[:, 1]).max()))
         t0 = R[i0][:, 2]
         slope = math.atan2(math.hypot(t0[0], t0[1]), t0[2])
         X = np.column_stack([np.full(z.size, disc.NX[i, 0]), np.full(z.size, disc.NX[i, 1]), z])
@@ -419,6 +426,8 @@ def _post(model, disc, W, y, store, c, phi, Q, uC, it, steps) -> FrameResult:
             max_deflection_mm=per[i], max_stress_MPa=float(vm[j]), z_max_stress_mm=float(z[j]),
             layer_reaction_N=react, curve_z_mm=np.concatenate([z, zt]), curve_u_mm=np.vstack([u, ut])))
     util = smax_all / model.yield_MPa
+    # fully plastic moment of a solid circular section, M_p = sigma_y d^3 / 6 (first yield: sigma_y pi d^3 / 32)
+    plastic = mb_all / (model.yield_MPa * model.diameter_mm**3 / 6)
     bone_util = max(bone["cortex"] / CORTICAL_STRENGTH_MPA, bone["cancellous"] / CANCELLOUS_STRENGTH_MPA)
     B = np.array([*model.centre_xy, 0.0])
     e_t = -(c + (Q - np.eye(3)) @ (B - disc.P0))
@@ -426,6 +435,10 @@ def _post(model, disc, W, y, store, c, phi, Q, uC, it, steps) -> FrameResult:
     if util > 1:
         warns.append(f"needle yields: von Mises {smax_all:.0f} MPa > yield {model.yield_MPa:g} MPa "
                      f"(utilisation {util:.2f}); the elastic pin is not valid here, the pin bends for good")
+    if plastic > 1:
+        warns.append(f"plastic hinge: bending moment {mb_all:.0f} N mm > the pin's fully plastic moment "
+                     f"{model.yield_MPa * model.diameter_mm**3 / 6:.0f} N mm; the pin collapses (bends for good) "
+                     "before this load is reached, the elastic deflection is a lower bound")
     if bone_util > 1:
         warns.append(f"bone overloaded: bearing pressure cortex {bone['cortex']:.1f} MPa (strength "
                      f"{CORTICAL_STRENGTH_MPA:g}), cancellous {bone['cancellous']:.2f} MPa (strength "
@@ -437,7 +450,7 @@ def _post(model, disc, W, y, store, c, phi, Q, uC, it, steps) -> FrameResult:
         force_N=tuple(W[:3].tolist()), moment_Nmm=tuple(W[3:].tolist()),
         clamp_displacement_mm=tuple(uC.tolist()), clamp_rotation_rad=tuple(phi.tolist()),
         load_point_displacement_mm=tuple(c.tolist()), max_needle_deflection_mm=gmax,
-        needle_yield_utilisation=util, bone_stress_MPa=bone, bone_utilisation=bone_util,
+        needle_yield_utilisation=util, needle_plastic_utilisation=plastic, bone_stress_MPa=bone, bone_utilisation=bone_util,
         bone_pose_error_mm=tuple(e_t.tolist()), bone_pose_error_rad=tuple((-phi).tolist()),
         needles=tuple(needles), iterations=int(it), load_steps=int(steps), error_estimate_mm=float("nan"),
         warnings=tuple(warns), state=y)
