@@ -527,3 +527,13 @@ def batch(F, M, y0, H0, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, ou
         status[m, 1] = st
         if st == OK:
             key_numbers(y, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, out[m])
+
+
+@njit(cache=True)
+def pose_solve(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, out):
+    """Broyden from (y, H) then the key numbers, in one call (one dispatch from Python: the control loop).
+    Returns (iterations, status); on status != OK the caller falls back to Newton with load stepping."""
+    it, st = broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, 40)
+    if st == OK:
+        key_numbers(y, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, out)
+    return it, st

@@ -520,16 +520,28 @@ def solve_batch(forces, moments=None, model: FrameModel | None = None) -> BatchR
 
 def pose(force, moment=None, model: FrameModel | None = None, initial=None):
     """Only the clamp pose and the max deflection, compiled end to end: (clamp_displacement_mm (3),
-    clamp_rotation_rad (3), max_needle_deflection_mm, state). For the control loop."""
+    clamp_rotation_rad (3), max_needle_deflection_mm, state). For the control loop: one compiled call
+    (quasi-Newton and post-processing) unless it has to fall back to Newton with load stepping."""
     model = FrameModel() if model is None else model
     k = _kernel()
     F, M = _vec("force_N", force), _vec("moment_Nmm", moment)
     _check_range(model, F, M)
     disc = _cached_disc(model, False)
-    y, it, _ = _run(disc, np.concatenate([F, M]), None if initial is None else np.asarray(initial, float))
+    W = np.concatenate([F, M])
+    C = disc.__dict__.get("C")
+    if C is None:
+        C = np.array(model.clamp_centre_mm)
+        object.__setattr__(disc, "C", C)
+    warm = disc.__dict__.get("H_warm") if initial is not None else None
+    H = (_inverse_tangent(disc) if warm is None else warm).copy()
+    y = np.zeros(6 * disc.NX.shape[0] + 6) if initial is None else np.array(initial, float)
     out = np.empty(7)
-    k.key_numbers(y, disc.NX, disc.P0, disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT, disc.SN, disc.P,
-                  np.array(model.clamp_centre_mm), model.free_length_mm, out)
+    it, st = k.pose_solve(y, H, disc.NX, disc.P0, W, disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT, disc.SN,
+                          disc.P, C, model.free_length_mm, _tol(disc, W), out)
+    if st != k.OK or (initial is not None and (warm is None or it > WARM_REFRESH)):
+        y, it, _ = _run(disc, W, None if initial is None else np.asarray(initial, float))
+        k.key_numbers(y, disc.NX, disc.P0, disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT, disc.SN, disc.P,
+                      C, model.free_length_mm, out)
     if not out[6] <= model.free_length_mm:
         raise InputError("force_N", f"outside the model's validity: deflection {out[6]:.4g} mm > free length "
                          f"{model.free_length_mm:g} mm")
