@@ -174,3 +174,20 @@ def test_yield_and_warnings():
     assert r.needle_plastic_utilisation > 1 and any("plastic hinge" in w for w in r.warnings)
     small = frame.solve((0, 10, 0))
     assert small.needle_yield_utilisation < 0.1 and not small.warnings
+
+
+def test_linear_limit_with_springs_equals_ritz():
+    """Small force, rigid root, stiff layers (they carry ~30 % of the force): the Ritz model (linear beam,
+    its own basis and quadrature, no cos term) and the frame rod agree."""
+    from needletissue import ritz
+    from needletissue.ritz import Layer
+
+    layers = (Layer("muscle", 22.0, 3.0), Layer("adipose", 10.0, 1.5))
+    rr = ritz.solve(1.0, ritz.RitzModel(free_length_mm=100.0, cos_term=False, layers=layers), order="auto")
+    rf = frame.solve((0, 1.0, 0), model=FrameModel(needles=1, root="rigid", clamp_length_mm=0.0, free_length_mm=100.0,
+                                                   shear=False, step_mm=1.0, layers=layers))
+    assert abs(rf.load_point_displacement_mm[1] / rr.tip_deflection_mm - 1) < 1e-4
+    for name in ("muscle", "adipose"):
+        got = -rf.needles[0].layer_reaction_N[name][1]
+        assert abs(got / rr.spring_reaction_N[name] - 1) < 3e-3
+    assert sum(rr.spring_reaction_N.values()) > 0.25
