@@ -46,14 +46,27 @@ def test_defaults_two_needles_with_moment_and_plot(tmp_path):
     assert all((tmp_path / f).is_file() for f in ("config.toml", "versions.json", "results.json"))
 
 
-@pytest.mark.parametrize("args,field", [
+BAD = [
     (["--diameter", "0"], "diameter_mm"), (["--spacing", "4"], "spacing_mm"), (["--depth", "1"], "depth_mm"),
     (["--load-point", "0,0,300"], "load_point_mm"), (["--force", "0,nan,0"], "force_N"),
     (["--force", "1,2"], "--force"), (["--needles", "5"], "needles"), (["--youngs-modulus", "-1"], "youngs_modulus_MPa"),
     (["--root", "glue"], "root"), (["--force", "0,1e6,0"], "force_N"), (["--layer", "m:-2:0.1"], "thickness_mm"),
     (["--cortex", "inf"], "cortex_mm"),
-])
-def test_bad_input_exit_2_naming_the_field(args, field):
+]
+
+
+@pytest.mark.parametrize("args,field", BAD)
+def test_bad_input_is_an_input_error_naming_the_field(args, field):
+    from needletissue.errors import InputError
+
+    r = CliRunner().invoke(app, ["frame", *args])
+    assert isinstance(r.exception, InputError), r.output
+    assert field in str(r.exception)
+
+
+@pytest.mark.parametrize("args,field", [BAD[1], BAD[4]])
+def test_bad_input_exit_2_one_line(args, field):
+    """Through the console entry point: exit code 2, one line naming the field, no traceback."""
     import os
     import subprocess
     import sys
@@ -63,7 +76,7 @@ def test_bad_input_exit_2_naming_the_field(args, field):
     p = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", "frame", *args],
                        capture_output=True, text=True, env=env, timeout=120)
     assert p.returncode == 2, p.stderr
-    assert field in p.stderr and "Traceback" not in p.stderr
+    assert field in p.stderr and "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1
 
 
 def test_compensate_reaches_the_target():
