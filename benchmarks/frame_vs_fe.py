@@ -10,7 +10,7 @@ centre is its force acting at `load_point_mm`, statically the same), and compare
 - the clamp-centre displacement vector (FE: best rigid motion of the clamp nodes), error |u_frame - u_FE|,
 - the max needle deflection (FE `max_needle_deformation_mm`, the part in the clamp included).
 Goal (issue #14): every point within max(0.432 mm, 2.4 % of the FE value), median below 1 %.
---calibrate: also fit (foundation_factor, tissue_factor) to all points by least squares
+--calibrate: also fit (foundation_factor, axial_factor, tissue_factor) to all points by least squares
 (needletissue.frame.calibration) and report the errors with the fitted factors (in-sample: 2 parameters
 on all points) and their 95 % intervals. Runs in seconds.
 """
@@ -91,6 +91,8 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, default=HERE / "frame_sweep" / "fe_sweep.json")
     p.add_argument("--calibrate", action="store_true")
+    p.add_argument("--cross-validate", action="store_true",
+                   help="leave one configuration out: fit on the others, predict it (out-of-sample errors)")
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args(argv)
     data = json.loads(a.data.read_text())
@@ -107,13 +109,28 @@ def main(argv=None):
         pts = [CalibrationPoint(model_of(r), tuple(r["force_vector_N"]),
                                 clamp_displacement_mm=tuple(r["clamp_centre_displacement_mm"]),
                                 max_needle_deflection_mm=r["max_needle_deformation_mm"]) for r in records]
-        c = calibration(pts)
+        c = calibration(pts, params=("foundation_factor", "axial_factor", "tissue_factor"))
         rows_c = compare(records, **c.params)
         report["calibrated"] = {"params": c.params, "intervals_95": c.intervals, "rms_mm": c.rms_mm,
                                 "summary": summary(rows_c), "rows": rows_c}
         print("fitted: " + ", ".join(f"{k} = {v:.4g} (95 % {c.intervals[k][0]:.4g} .. {c.intervals[k][1]:.4g})"
                                      for k, v in c.params.items()))
         _print("frame (fitted factors, in-sample)", report["calibrated"]["summary"])
+    if a.cross_validate:
+        from needletissue.frame.fitting import CalibrationPoint, calibration
+
+        rows_cv = []
+        configs = sorted({r["config_id"] for r in records})
+        for cid in configs:
+            train = [r for r in records if r["config_id"] != cid]
+            test = [r for r in records if r["config_id"] == cid]
+            pts = [CalibrationPoint(model_of(r), tuple(r["force_vector_N"]),
+                                    clamp_displacement_mm=tuple(r["clamp_centre_displacement_mm"]),
+                                    max_needle_deflection_mm=r["max_needle_deformation_mm"]) for r in train]
+            c = calibration(pts, params=("foundation_factor", "axial_factor", "tissue_factor"))
+            rows_cv += compare(test, **c.params)
+        report["cross_validated"] = {"summary": summary(rows_cv), "rows": rows_cv}
+        _print(f"frame (leave one of {len(configs)} configurations out)", report["cross_validated"]["summary"])
     worst = sorted(rows, key=lambda r: -r["max_needle_error_pct"])[:5]
     print("worst points (physical):")
     for r in worst:

@@ -48,6 +48,10 @@ def _opts():
         foundation_factor=typer.Option(1.0, "--foundation-factor", help="Factor on the derived bone foundation "
                                        "(dimensionless, (0, 10])."),
         tissue_factor=typer.Option(1.0, "--tissue-factor", help="Factor on the layers' k (dimensionless, (0, 10])."),
+        calibrated=typer.Option(False, "--calibrated", help="Use the factors fitted to the FE model "
+                                "(frame.model.FE_CALIBRATION) instead of the physical ones (docs/frame.md)."),
+        axial_factor=typer.Option(1.0, "--axial-factor", help="Factor on the bone's axial stiffness (shaft and "
+                                  "tip; dimensionless, (0, 10])."),
         youngs_modulus=typer.Option(M.NEEDLE_E_MPA, "--youngs-modulus", help="Pin Young's modulus, MPa (> 0)."),
         moment=typer.Option(None, "--moment", help="Moment MX,MY,MZ at the load point, N mm (with every force)."),
         json_out=typer.Option(False, "--json", help="Print JSON {model, results} instead of a table."),
@@ -55,16 +59,19 @@ def _opts():
 
 
 def _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length, layer, no_tissue, root,
-           load_point, foundation_factor, tissue_factor, youngs_modulus):
-    from needletissue.frame.model import FrameModel
+           load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor=1.0, calibrated=False):
+    from needletissue.frame.model import FE_CALIBRATION, FrameModel
     from needletissue.ritz.model import DEFAULT_LAYERS, Layer
 
     layers = tuple(Layer.parse(t) for t in layer) if layer else DEFAULT_LAYERS
+    if calibrated:
+        foundation_factor, axial_factor, tissue_factor = (FE_CALIBRATION[k] for k in
+                                                          ("foundation_factor", "axial_factor", "tissue_factor"))
     return FrameModel(needles=needles, spacing_mm=spacing, diameter_mm=diameter, free_length_mm=free_length,
                       depth_mm=depth, cortex_mm=cortex, clamp_length_mm=clamp_length, layers=layers,
                       tissue=not no_tissue, root=root, load_point_mm=_triple("--load-point", load_point),
                       foundation_factor=foundation_factor, tissue_factor=tissue_factor,
-                      youngs_modulus_MPa=youngs_modulus)
+                      axial_factor=axial_factor, youngs_modulus_MPa=youngs_modulus)
 
 
 def register(app: typer.Typer, groups) -> None:
@@ -85,6 +92,7 @@ def register(app: typer.Typer, groups) -> None:
         no_tissue: bool = o["no_tissue"], root: str = o["root"], load_point: Optional[str] = o["load_point"],
         foundation_factor: float = o["foundation_factor"], tissue_factor: float = o["tissue_factor"],
         youngs_modulus: float = o["youngs_modulus"], moment: Optional[str] = o["moment"],
+        axial_factor: float = o["axial_factor"], calibrated: bool = o["calibrated"],
         json_out: bool = o["json_out"],
         plot: Optional[Path] = typer.Option(None, "--plot", help="Draw each pin's deflection per force to "
                                             "FILE.png; config.toml, versions.json, results.json beside it."),
@@ -95,7 +103,7 @@ def register(app: typer.Typer, groups) -> None:
         from needletissue.frame.solver import solve
 
         model = _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length, layer, no_tissue,
-                       root, load_point, foundation_factor, tissue_factor, youngs_modulus)
+                       root, load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor, calibrated)
         M = _triple("--moment", moment)
         forces = [_triple("--force", f) for f in force] if force else [(0.0, F, 0.0) for F in (100.0, 200.0, 300.0)]
         results = [solve(f, M, model) for f in forces]
@@ -128,13 +136,14 @@ def register(app: typer.Typer, groups) -> None:
         no_tissue: bool = o2["no_tissue"], root: str = o2["root"], load_point: Optional[str] = o2["load_point"],
         foundation_factor: float = o2["foundation_factor"], tissue_factor: float = o2["tissue_factor"],
         youngs_modulus: float = o2["youngs_modulus"], moment: Optional[str] = o2["moment"],
+        axial_factor: float = o2["axial_factor"], calibrated: bool = o2["calibrated"],
         json_out: bool = o2["json_out"],
     ):
         """Clamp pose to command so that the bone fragment reaches its target under the wrench."""
         from needletissue.frame.aim import compensate as comp
 
         model = _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length, layer, no_tissue,
-                       root, load_point, foundation_factor, tissue_factor, youngs_modulus)
+                       root, load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor, calibrated)
         c = comp(_triple("--target", target), _triple("--target-rotation", target_rotation),
                  _triple("--force", force), _triple("--moment", moment), model, wrench_frame=wrench_frame,
                  detail=True)

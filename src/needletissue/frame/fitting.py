@@ -1,5 +1,5 @@
-"""Fit the frame model's effective parameters (bone foundation factor, tissue spring factor) to FE runs
-or measurements by least squares, with Jacobian-based confidence intervals.
+"""Fit the frame model's effective parameters (bone foundation factor, tissue spring factor, and
+optionally the bone's axial factor) to FE runs or measurements by least squares, with Jacobian-based confidence intervals.
 
 Each point: a model (geometry), a wrench and what was measured there (clamp-centre displacement vector
 and/or the max needle deflection, mm). Residuals in mm; the factors are fitted in log space (they stay
@@ -16,7 +16,7 @@ import numpy as np
 from needletissue.errors import InputError
 from needletissue.frame.model import MAX_FACTOR, FrameModel
 
-PARAMS = ("foundation_factor", "tissue_factor")
+PARAMS = ("foundation_factor", "axial_factor", "tissue_factor")
 
 
 @dataclass(frozen=True)
@@ -51,13 +51,13 @@ def _predict(p: CalibrationPoint, values: dict):
     return out
 
 
-def calibrate(points, params=PARAMS, x0=None) -> tuple[dict, dict]:
+def calibrate(points, params=("foundation_factor", "tissue_factor"), x0=None) -> tuple[dict, dict]:
     """(fitted params, 95 % confidence intervals); `calibration(...)` returns the full record."""
     c = calibration(points, params, x0)
     return c.params, c.intervals
 
 
-def calibration(points, params=PARAMS, x0=None) -> Calibration:
+def calibration(points, params=("foundation_factor", "tissue_factor"), x0=None) -> Calibration:
     from scipy.optimize import least_squares
     from scipy.stats import t as student
 

@@ -85,7 +85,7 @@ def discretise(model: FrameModel, coarse: bool = False) -> Discretisation:
     a = m.foundation_factor
     if m.root == "bone":
         for name, z0, z1 in (("cancellous", -m.depth_mm, -m.cortex_mm), ("cortex", -m.cortex_mm, 0.0)):
-            segs.append((name, z0, z1, 0, a * found[f"{name}_lateral"], a * found[f"{name}_axial"],
+            segs.append((name, z0, z1, 0, a * found[f"{name}_lateral"], m.axial_factor * found[f"{name}_axial"],
                          a * found[f"{name}_torsion"]))
     z = 0.0
     if m.tissue:
@@ -113,7 +113,7 @@ def discretise(model: FrameModel, coarse: bool = False) -> Discretisation:
     P[k.EA] = m.youngs_modulus_MPa * m.area_mm2
     P[k.KGA] = kGA
     P[k.SHEAR] = 1.0 if m.shear else 0.0
-    P[k.KTIP] = m.foundation_factor * found["tip_axial_N_per_mm"] if m.root == "bone" else 0.0
+    P[k.KTIP] = m.axial_factor * found["tip_axial_N_per_mm"] if m.root == "bone" else 0.0
     P[k.LS] = L
     P[k.FS] = EI / L**2
     P[k.MS] = EI / L
