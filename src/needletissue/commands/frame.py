@@ -180,14 +180,13 @@ def _table(model, results):
     t = Table(title=f"Needle frame: {model.needles} pin(s) d={model.diameter_mm:g} mm, l={model.free_length_mm:g} mm, "
               f"depth {model.depth_mm:g} mm ({model.root} root), clamp {model.clamp_length_mm:g} mm, "
               f"tissue {'on' if model.tissue else 'off'}")
-    for col in ("force N", "clamp u mm", "|u| mm", "clamp rot rad", "max pin mm", "root slope rad",
-                "yield util", "it", "err mm"):
-        t.add_column(col, justify="right", no_wrap=True)
+    for col in ("F N", "clamp u mm", "|rot| rad", "max pin mm", "slope rad", "yield", "err mm"):
+        t.add_column(col, justify="right")
     for r in results:
         import math
 
         t.add_row(",".join(f"{x:g}" for x in r.force_N), ",".join(f"{x:.3f}" for x in r.clamp_displacement_mm),
-                  f"{math.hypot(*r.clamp_displacement_mm):.3f}", ",".join(f"{x:.4f}" for x in r.clamp_rotation_rad),
-                  f"{r.max_needle_deflection_mm:.3f}", f"{max(n.root_slope_rad for n in r.needles):.4f}",
-                  f"{r.needle_yield_utilisation:.2f}", str(r.iterations), f"{r.error_estimate_mm:.1e}")
+                  f"{math.hypot(*r.clamp_rotation_rad):.4f}", f"{r.max_needle_deflection_mm:.3f}",
+                  f"{max(n.root_slope_rad for n in r.needles):.4f}", f"{r.needle_yield_utilisation:.2f}",
+                  f"{r.error_estimate_mm:.0e}")
     Console().print(t)
