@@ -147,6 +147,12 @@ def test_validity_and_bad_input():
         frame.solve((0, 1e5, 0), model=FrameModel(needles=1, root="rigid", tissue=False))
     with pytest.raises(InputError, match="force_N"):
         frame.solve((0, float("nan"), 0))
+    with pytest.raises(InputError, match="buckling"):  # the straight answer would be unstable
+        frame.solve((0, 0, -800.0), model=FrameModel(needles=1))   # pi^2 EI / (4 L^2) = 687 N, L = 110 mm
+    r = frame.solve((0, 0, -2000.0), model=FrameModel(needles=2))  # guided by the clamp: 2749 N
+    assert any("buckling" in w for w in r.warnings)
+    with pytest.raises(InputError, match="buckling"):
+        frame.solve((0, 0, -6000.0), model=FrameModel(needles=2))
     with pytest.raises(InputError, match="moment_Nmm"):
         frame.solve((0, 1, 0), (1, 2))
     bad = [dict(diameter_mm=0), dict(free_length_mm=-1), dict(youngs_modulus_MPa=0), dict(cancellous_E_MPa=-5),

@@ -337,6 +337,13 @@ def _check_range(model: FrameModel, F, M):
     L = model.clamp_bottom_mm + (model.depth_mm if model.root == "bone" else 0.0)
     EI, n = model.bending_stiffness_Nmm2, model.needles
     est = (math.hypot(F[0], F[1]) * L**3 / (3 * EI) + math.hypot(M[0], M[1]) * L**2 / (2 * EI)) / n
+    # compression along the pins beyond their buckling load: the straight answer would be an unstable
+    # equilibrium. One pin: a cantilever, pi^2 EI / (4 L^2); several: the clamp guides them, pi^2 EI / L^2
+    # (rigid root; the bone's compliance lowers both: a warning below uses the cantilever value).
+    P_cr = math.pi**2 * EI / L**2 / (4.0 if n == 1 else 1.0)
+    if -F[2] / n > P_cr:
+        raise InputError("force_N", f"outside the model's validity: {-F[2] / n:.4g} N of compression per pin is "
+                         f"above its buckling load {P_cr:.4g} N (L = {L:g} mm)")
     if est > MAX_LINEAR_DEFLECTION_RATIO * model.free_length_mm:
         raise InputError("force_N", f"outside the model's validity: force {F.tolist()} N, moment {M.tolist()} N mm "
                          f"would bend the pins by about {est:.3g} mm (linear estimate), more than "
@@ -388,6 +395,7 @@ def _post(model, disc, W, y, store, c, phi, Q, uC, it, steps) -> FrameResult:
     needles = []
     smax_all = 0.0
     mb_all = 0.0
+    ncomp_all = 0.0
     bone = {"cortex": 0.0, "cancellous": 0.0}
     for i in range(nn):
         S = store[i]
@@ -400,6 +408,7 @@ def _post(model, disc, W, y, store, c, phi, Q, uC, it, steps) -> FrameResult:
         j = int(np.argmax(vm))
         smax_all = max(smax_all, float(vm[j]))
         mb_all = max(mb_all, float(np.hypot(ml[:, 0], ml[:, 1]).max()))
+        ncomp_all = max(ncomp_all, float(-nl[:, 2].min()))
         t0 = R[i0][:, 2]
         slope = math.atan2(math.hypot(t0[0], t0[1]), t0[2])
         X = np.column_stack([np.full(z.size, disc.NX[i, 0]), np.full(z.size, disc.NX[i, 1]), z])
@@ -435,6 +444,11 @@ def _post(model, disc, W, y, store, c, phi, Q, uC, it, steps) -> FrameResult:
     if util > 1:
         warns.append(f"needle yields: von Mises {smax_all:.0f} MPa > yield {model.yield_MPa:g} MPa "
                      f"(utilisation {util:.2f}); the elastic pin is not valid here, the pin bends for good")
+    Lb = model.clamp_bottom_mm + (model.depth_mm if model.root == "bone" else 0.0)
+    P_cant = math.pi**2 * model.bending_stiffness_Nmm2 / (4 * Lb**2)
+    if ncomp_all > P_cant:
+        warns.append(f"a pin carries {ncomp_all:.0f} N of compression, above the cantilever buckling load "
+                     f"{P_cant:.0f} N: the clamp's restraint is what keeps it straight; check the stability")
     if plastic > 1:
         warns.append(f"plastic hinge: bending moment {mb_all:.0f} N mm > the pin's fully plastic moment "
                      f"{model.yield_MPa * model.diameter_mm**3 / 6:.0f} N mm; the pin collapses (bends for good) "
