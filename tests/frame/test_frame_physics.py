@@ -197,3 +197,24 @@ def test_linear_limit_with_springs_equals_ritz():
         got = -rf.needles[0].layer_reaction_N[name][1]
         assert abs(got / rr.spring_reaction_N[name] - 1) < 3e-3
     assert sum(rr.spring_reaction_N.values()) > 0.25
+
+
+def test_pose_and_batch_equal_solve():
+    """The compiled paths (control loop, batch) give solve()'s answer; warm starts change nothing."""
+    m = FrameModel(needles=2)
+    rng = np.random.default_rng(5)
+    F = rng.uniform(-250, 250, (6, 3)) * [1, 1, 0.3]
+    M = rng.uniform(-3000, 3000, (6, 3))
+    b = frame.solve_batch(F, M, model=m)
+    state = None
+    for i in range(6):
+        r = frame.solve(F[i], M[i], model=m, error_estimate=False)
+        u, rot, dmax, state = frame.pose(F[i], M[i], model=m, initial=state)
+        for got in (u, b.clamp_displacement_mm[i]):
+            assert np.allclose(got, r.clamp_displacement_mm, atol=1e-6)
+        for got in (rot, b.clamp_rotation_rad[i]):
+            assert np.allclose(got, r.clamp_rotation_rad, atol=1e-8)
+        assert abs(dmax - r.max_needle_deflection_mm) < 1e-6
+        assert abs(b.max_needle_deflection_mm[i] - r.max_needle_deflection_mm) < 1e-6
+    with pytest.raises(InputError, match="force_N"):
+        frame.solve_batch([[0, 0, float("nan")]], model=m)
