@@ -58,7 +58,7 @@ def expm(w, R):
     R[2, 1] = a * x + b * y * z
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=True, inline="always")
 def _rhs(z, s, x0, y0, kind, kh, kz, kt, P, ds):
     # R row-major in s[3:12]: R[i, j] = s[3 + 3 i + j]
     n0, n1, n2 = s[12], s[13], s[14]
@@ -148,7 +148,7 @@ def _start(a, x0, y0, P, s, Rw):
         s[14] = P[KTIP] * a[2] * P[LS]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=True)
 def integrate(a, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, end, store, do_store):
     """Integrate one needle from its root to the clamp; end state into `end` (18); with do_store the
     state at every step boundary into store (nodes, 18)."""
