@@ -218,3 +218,25 @@ def test_pose_and_batch_equal_solve():
         assert abs(b.max_needle_deflection_mm[i] - r.max_needle_deflection_mm) < 1e-6
     with pytest.raises(InputError, match="force_N"):
         frame.solve_batch([[0, 0, float("nan")]], model=m)
+
+
+def test_elastic_plastic_section():
+    """Moment-curvature of the circular section: first yield sigma_y pi d^3/32, fully plastic limit
+    sigma_y d^3/6 without hardening; the rod follows the elastic one below first yield and bends more above."""
+    from needletissue.frame.model import moment_curvature
+
+    m = FrameModel(needles=1, root="rigid", tissue=False, clamp_length_mm=0.0, free_length_mm=84.0, plastic=True)
+    sy, d = m.yield_MPa, m.diameter_mm
+    kap, M = moment_curvature(m)
+    My, Mp = sy * math.pi * d**3 / 32, sy * d**3 / 6
+    assert math.isclose(M[1], My) and np.all(np.diff(M) > 0)
+    assert math.isclose(kap[1] * m.bending_stiffness_Nmm2, My, rel_tol=1e-12)  # elastic up to first yield
+    _, M0 = moment_curvature(m.replace(hardening_MPa=1e-6))
+    assert abs(M0[-1] / Mp - 1) < 1e-3
+    elastic = m.replace(plastic=False)
+    below = (0, 0.9 * My / 84.0, 0)
+    assert abs(frame.solve(below, model=m).max_needle_deflection_mm
+               - frame.solve(below, model=elastic).max_needle_deflection_mm) < 1e-9
+    above = (0, 1.6 * My / 84.0, 0)
+    assert frame.solve(above, model=m).max_needle_deflection_mm > \
+        1.05 * frame.solve(above, model=elastic).max_needle_deflection_mm

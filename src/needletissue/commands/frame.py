@@ -48,6 +48,8 @@ def _opts():
         foundation_factor=typer.Option(1.0, "--foundation-factor", help="Factor on the derived bone foundation "
                                        "(dimensionless, (0, 10])."),
         tissue_factor=typer.Option(1.0, "--tissue-factor", help="Factor on the layers' k (dimensionless, (0, 10])."),
+        plastic=typer.Option(False, "--plastic", help="Elastic-plastic pin section (Ti-6Al-4V, yield 880 MPa, "
+                             "linear hardening 530 MPa; monotonic loading)."),
         calibrated=typer.Option(False, "--calibrated", help="Use the factors fitted to the FE model "
                                 "(frame.model.FE_CALIBRATION) instead of the physical ones (docs/frame.md)."),
         axial_factor=typer.Option(1.0, "--axial-factor", help="Factor on the bone's axial stiffness (shaft and "
@@ -59,7 +61,8 @@ def _opts():
 
 
 def _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length, layer, no_tissue, root,
-           load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor=1.0, calibrated=False):
+           load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor=1.0, calibrated=False,
+           plastic=False):
     from needletissue.frame.model import FE_CALIBRATION, FrameModel
     from needletissue.ritz.model import DEFAULT_LAYERS, Layer
 
@@ -71,7 +74,7 @@ def _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length,
                       depth_mm=depth, cortex_mm=cortex, clamp_length_mm=clamp_length, layers=layers,
                       tissue=not no_tissue, root=root, load_point_mm=_triple("--load-point", load_point),
                       foundation_factor=foundation_factor, tissue_factor=tissue_factor,
-                      axial_factor=axial_factor, youngs_modulus_MPa=youngs_modulus)
+                      axial_factor=axial_factor, youngs_modulus_MPa=youngs_modulus, plastic=plastic)
 
 
 def register(app: typer.Typer, groups) -> None:
@@ -93,6 +96,7 @@ def register(app: typer.Typer, groups) -> None:
         foundation_factor: float = o["foundation_factor"], tissue_factor: float = o["tissue_factor"],
         youngs_modulus: float = o["youngs_modulus"], moment: Optional[str] = o["moment"],
         axial_factor: float = o["axial_factor"], calibrated: bool = o["calibrated"],
+        plastic: bool = o["plastic"],
         json_out: bool = o["json_out"],
         plot: Optional[Path] = typer.Option(None, "--plot", help="Draw each pin's deflection per force to "
                                             "FILE.png; config.toml, versions.json, results.json beside it."),
@@ -103,7 +107,8 @@ def register(app: typer.Typer, groups) -> None:
         from needletissue.frame.solver import solve
 
         model = _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length, layer, no_tissue,
-                       root, load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor, calibrated)
+                       root, load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor, calibrated,
+                       plastic)
         M = _triple("--moment", moment)
         forces = [_triple("--force", f) for f in force] if force else [(0.0, F, 0.0) for F in (100.0, 200.0, 300.0)]
         results = [solve(f, M, model) for f in forces]
@@ -137,13 +142,15 @@ def register(app: typer.Typer, groups) -> None:
         foundation_factor: float = o2["foundation_factor"], tissue_factor: float = o2["tissue_factor"],
         youngs_modulus: float = o2["youngs_modulus"], moment: Optional[str] = o2["moment"],
         axial_factor: float = o2["axial_factor"], calibrated: bool = o2["calibrated"],
+        plastic: bool = o2["plastic"],
         json_out: bool = o2["json_out"],
     ):
         """Clamp pose to command so that the bone fragment reaches its target under the wrench."""
         from needletissue.frame.aim import compensate as comp
 
         model = _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length, layer, no_tissue,
-                       root, load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor, calibrated)
+                       root, load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor, calibrated,
+                       plastic)
         c = comp(_triple("--target", target), _triple("--target-rotation", target_rotation),
                  _triple("--force", force), _triple("--moment", moment), model, wrench_frame=wrench_frame,
                  detail=True)

@@ -28,8 +28,10 @@ import numpy as np
 from numba import njit
 
 # constants vector P
-EI, GJ, EA, KGA, SHEAR, KTIP, LS, FS, MS, Z0, ZC, RIGID = range(12)
-NP = 12
+EI, GJ, EA, KGA, SHEAR, KTIP, LS, FS, MS, Z0, ZC, RIGID, NPL = range(13)
+NP = 13
+# With an elastic-plastic section, P[NP:] holds the moment-curvature table of the section: NPL points
+# curvature kappa_i (1/mm) then moment M_i (N mm), monotonic loading (deformation theory).
 OK, MAX_ITER, NOT_FINITE, CUTBACK = 0, 1, 2, 3
 _FD = 1e-7
 _MAXIT = 25
@@ -87,6 +89,27 @@ def _rhs(z, s, x0, y0, kind, kh, kz, kt, P, ds):
     k0 = ml0 / P[EI]
     k1 = ml1 / P[EI]
     k2 = ml2 / P[GJ]
+    npl = int(P[NPL])
+    if npl > 0:
+        mb = np.sqrt(ml0 * ml0 + ml1 * ml1)
+        base = NP + npl
+        if mb > P[base + 1]:  # beyond the first table segment (elastic up to first yield)
+            lo = 1
+            hi = npl - 1
+            if mb >= P[base + hi]:
+                j = hi - 1
+            else:
+                while hi - lo > 1:
+                    mid = (lo + hi) // 2
+                    if P[base + mid] <= mb:
+                        lo = mid
+                    else:
+                        hi = mid
+                j = lo
+            kap = P[NP + j] + (mb - P[base + j]) * (P[NP + j + 1] - P[NP + j]) / (P[base + j + 1] - P[base + j])
+            f = kap / mb
+            k0 = ml0 * f
+            k1 = ml1 * f
     # R' = R [k]x ; [k]x = [[0,-k2,k1],[k2,0,-k0],[-k1,k0,0]]
     for i in range(3):
         a = s[3 + 3 * i]

@@ -44,6 +44,9 @@ CORTICAL_STRENGTH_MPA = 131.0
 # Cancellous bone compressive strength: of order 1-10 MPa (Keaveny et al. 2001, Annu Rev Biomed Eng 3:307);
 # 5 MPa taken as a representative value for pelvic cancellous bone.
 CANCELLOUS_STRENGTH_MPA = 5.0
+# Linear hardening of Ti-6Al-4V between yield (880 MPa at 0.8 % strain) and ultimate strength (950 MPa at
+# the 14 % elongation at break, same data sheet): H = (950 - 880) / (0.14 - 0.008) ~ 530 MPa.
+NEEDLE_HARDENING_MPA = 530.0
 
 # Shear correction factor of a solid circular section (Timoshenko; Cowper 1966: 6(1+nu)/(7+6nu)).
 ROOTS = ("bone", "rigid")
@@ -120,6 +123,8 @@ class FrameModel:
     clamp_overhang_mm: float = DEFAULT_CLAMP_OVERHANG_MM
     step_mm: float = 8.0        # integration step (RK4) target; doubled in the error estimate
     yield_MPa: float = NEEDLE_YIELD_MPA
+    plastic: bool = False       # elastic-plastic pin section (bilinear, hardening_MPa), monotonic loading
+    hardening_MPa: float = NEEDLE_HARDENING_MPA
 
     def __post_init__(self):
         if isinstance(self.needles, bool) or not isinstance(self.needles, (int, np.integer)) \
@@ -140,7 +145,8 @@ class FrameModel:
             check_number(name, getattr(self, name), gt=-1, lt=0.5)
         if self.root not in ROOTS:
             raise InputError("root", f"must be one of {ROOTS}, got {self.root!r}")
-        for name in ("tissue", "shear"):
+        check_number("hardening_MPa", self.hardening_MPa, gt=0, lt=self.youngs_modulus_MPa)
+        for name in ("tissue", "shear", "plastic"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(name, f"must be true or false, got {getattr(self, name)!r}")
         layers = tuple(self.layers)
@@ -282,3 +288,27 @@ class FrameModel:
         d["foundation_N_per_mm2"] = self.foundation
         d["clamp_centre_mm"] = list(self.clamp_centre_mm)
         return d
+
+
+def moment_curvature(model: FrameModel, points: int = 160) -> tuple[np.ndarray, np.ndarray]:
+    """M(kappa) of the solid circular pin section with a bilinear material (E up to the yield stress,
+    then the hardening modulus H), M = int sigma(kappa y) y dA; kappa from 0 to 60 x the first-yield
+    curvature (surface strain ~ 50 %, far past any use). Gauss-Legendre in y on [-r, r] with the chord
+    width 2 sqrt(r^2 - y^2): converged to 1e-6 (tested against the closed forms: M_y = sigma_y pi d^3/32
+    at first yield, M -> M_p = sigma_y d^3/6 for H -> 0)."""
+    E, sy, H = model.youngs_modulus_MPa, model.yield_MPa, model.hardening_MPa
+    r = model.diameter_mm / 2
+    ky = sy / (E * r)
+    kap = np.concatenate([[0.0, ky], ky * np.geomspace(1.0005, 60.0, points - 2)])
+    # y = r sin(t): dA-weighted integral int_{-pi/2}^{pi/2} sigma(kappa r sin t) r sin t 2 r cos t r cos t dt
+    t, w = np.polynomial.legendre.leggauss(400)
+    t = t * np.pi / 2
+    w = w * np.pi / 2
+    y = r * np.sin(t)
+    dA = 2 * r * np.cos(t) * r * np.cos(t)
+    eps = kap[:, None] * y[None, :]
+    ey = sy / E
+    sig = np.where(np.abs(eps) <= ey, E * eps, np.sign(eps) * (sy + H * (np.abs(eps) - ey)))
+    M = (sig * y * dA * w).sum(1)
+    M[1] = sy * np.pi * model.diameter_mm**3 / 32  # exact at first yield (the quadrature's kink)
+    return kap, M

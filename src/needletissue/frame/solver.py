@@ -107,7 +107,16 @@ def discretise(model: FrameModel, coarse: bool = False) -> Discretisation:
     SN = np.array(SN, np.int64)
     kGA = shear_factor(m.poisson) * m.shear_modulus_MPa * m.area_mm2
     L = m.free_length_mm
-    P = np.zeros(k.NP)
+    if m.plastic:
+        from needletissue.frame.model import moment_curvature
+
+        kap, Mk = moment_curvature(m)
+        P = np.zeros(k.NP + 2 * kap.size)
+        P[k.NPL] = kap.size
+        P[k.NP: k.NP + kap.size] = kap
+        P[k.NP + kap.size:] = Mk
+    else:
+        P = np.zeros(k.NP)
     P[k.EI] = EI
     P[k.GJ] = m.shear_modulus_MPa * 2 * m.second_moment_mm4
     P[k.EA] = m.youngs_modulus_MPa * m.area_mm2
