@@ -20,10 +20,12 @@ ALLOWED = {
     "imaging": BASE,
     "geometry": BASE | {"imaging"},
     "ritz": BASE | {"materials"},
-    "models": BASE | {"materials", "fem", "geometry", "imaging", "ritz"},
-    "studies": BASE | {"materials", "fem", "geometry", "imaging", "ritz", "models"},
-    "report": BASE | {"materials", "fem", "geometry", "imaging", "ritz", "models", "studies"},
-    "commands": BASE | {"materials", "fem", "geometry", "imaging", "ritz", "models", "studies", "report"},
+    "frame": BASE | {"materials", "ritz"},
+    "models": BASE | {"materials", "fem", "geometry", "imaging", "ritz", "frame"},
+    "studies": BASE | {"materials", "fem", "geometry", "imaging", "ritz", "frame", "models"},
+    "report": BASE | {"materials", "fem", "geometry", "imaging", "ritz", "frame", "models", "studies"},
+    "commands": BASE | {"materials", "fem", "geometry", "imaging", "ritz", "frame", "models", "studies",
+                        "report"},
     "cli": {"errors", "commands", "__init__"},
 }
 

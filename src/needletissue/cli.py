@@ -11,12 +11,12 @@ from rich.markup import escape
 
 from needletissue import __version__
 from needletissue.commands import (
-    fe_needle, fe_pelvis, imaging, materials, reproduce, ritz, study, validate,
+    fe_needle, fe_pelvis, frame, imaging, materials, reproduce, ritz, study, validate,
 )
 from needletissue.errors import InputError, NeedleTissueError
 
 # One module per concern; each defines register(app, groups) and keeps heavy imports inside commands.
-_COMMAND_MODULES = (materials, ritz, validate, fe_needle, fe_pelvis, imaging, reproduce, study)
+_COMMAND_MODULES = (materials, ritz, frame, validate, fe_needle, fe_pelvis, imaging, reproduce, study)
 
 app = typer.Typer(
     name="needletissue",

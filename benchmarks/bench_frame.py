@@ -1,0 +1,126 @@
+"""Frame model speed (pytest-benchmark): medians, per-core rates and ratios, one run.
+
+    make bench    or    pytest -q benchmarks/bench_frame.py --benchmark-only -s
+
+Targets (issue #14): one 2-pin solve through the Python API <= 50 us warm; a compensation call <= 200 us;
+>= 100,000 batched solves/s on one core. Ratios against scipy.optimize.root (MINPACK hybrd) on the SAME
+residual (the compiled rod integration, called from Python), and against the FE model it replaces
+(`fe needle`, default two pins, 100/200/300 N: 86 s CPU, docs/needle_model.md, i.e. ~29 s CPU per force;
+not re-run here). CPU time (process_time) is printed beside the wall-clock medians: on a shared machine
+the wall clock measures the other users too.
+"""
+
+import time
+
+import numpy as np
+import pytest
+from scipy.optimize import root
+
+from needletissue import frame
+from needletissue.frame import kernel, solver
+
+MODEL = frame.FrameModel()          # fe needle's defaults: two 5 mm pins, l = 100 mm, bone root, tissue
+FORCE = (0.0, 300.0, 0.0)
+FE_CPU_PER_FORCE_S = 86.0 / 3
+N_BATCH = 2_000
+_MED = {}
+
+
+def _cpu(fn, n):
+    t0 = time.process_time()
+    for _ in range(n):
+        fn()
+    return (time.process_time() - t0) / n
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _summary():
+    yield
+    print()
+    for key, goal in (("pose", 50e-6), ("pose_warm", 50e-6), ("solve_no_estimate", 50e-6), ("solve_full", None), ("compensate", 200e-6)):
+        if key in _MED:
+            wall, cpu = _MED[key]
+            extra = f" (goal <= {goal * 1e6:.0f} us: x{cpu / goal:.1f})" if goal else ""
+            print(f"frame {key}: median {wall * 1e6:.0f} us wall, {cpu * 1e6:.0f} us CPU{extra}; "
+                  f"x{FE_CPU_PER_FORCE_S / cpu:.1e} faster than the FE per force")
+    if "batch" in _MED:
+        rate = 1 / _MED["batch"][1]
+        print(f"frame batch: {rate:,.0f} solves/s per core (goal >= 100,000: x{100_000 / rate:.0f} short)")
+    if "scipy_root" in _MED and "pose" in _MED:
+        print(f"scipy.optimize.root on the same residual: {_MED['scipy_root'][1] * 1e6:.0f} us CPU, "
+              f"x{_MED['scipy_root'][1] / _MED['pose'][1]:.1f} the compiled quasi-Newton")
+
+
+def test_pose(benchmark):
+    frame.pose(FORCE, model=MODEL)
+    out = benchmark(frame.pose, FORCE, None, MODEL)
+    assert 10 < out[2] < 25
+    _MED["pose"] = benchmark.stats.stats.median, _cpu(lambda: frame.pose(FORCE, model=MODEL), 200)
+
+
+def test_pose_warm(benchmark):
+    """The control loop: each solve starts from the previous answer (state and Broyden tangent)."""
+    state = frame.pose(FORCE, model=MODEL)[3]
+    forces = [np.array(FORCE) + (0.0, 2.0 * np.sin(i), 1.0) for i in range(64)]
+    i = [0]
+
+    def step():
+        i[0] = (i[0] + 1) % 64
+        return frame.pose(forces[i[0]], None, MODEL, initial=state)
+
+    benchmark(step)
+    _MED["pose_warm"] = benchmark.stats.stats.median, _cpu(step, 200)
+
+
+def test_solve_full_results(benchmark):
+    frame.solve(FORCE, model=MODEL)
+    benchmark(frame.solve, FORCE, None, MODEL, error_estimate=False)
+    _MED["solve_no_estimate"] = (benchmark.stats.stats.median,
+                                 _cpu(lambda: frame.solve(FORCE, model=MODEL, error_estimate=False), 50))
+    _MED["solve_full"] = (float("nan"), _cpu(lambda: frame.solve(FORCE, model=MODEL), 30))
+    _MED["solve_full"] = (_MED["solve_full"][1], _MED["solve_full"][1])
+
+
+def test_compensate(benchmark):
+    prev = frame.compensate((0, 5, 0), (0.01, 0, 0), FORCE, model=MODEL)
+    benchmark(frame.compensate, (0, 5, 0), (0.01, 0, 0), FORCE, None, MODEL, initial=prev.state)
+    _MED["compensate"] = (benchmark.stats.stats.median, _cpu(
+        lambda: frame.compensate((0, 5, 0), (0.01, 0, 0), FORCE, model=MODEL, initial=prev.state), 50))
+
+
+def test_batch(benchmark):
+    rng = np.random.default_rng(0)
+    F = np.column_stack([rng.uniform(-300, 300, N_BATCH), rng.uniform(-300, 300, N_BATCH),
+                         rng.uniform(-100, 100, N_BATCH)])
+    frame.solve_batch(F[:4], model=MODEL)
+    b = benchmark.pedantic(frame.solve_batch, args=(F,), kwargs=dict(model=MODEL), rounds=3, iterations=1)
+    assert b.max_needle_deflection_mm.shape == (N_BATCH,)
+    t0 = time.process_time()
+    frame.solve_batch(F, model=MODEL)
+    _MED["batch"] = benchmark.stats.stats.median / N_BATCH, (time.process_time() - t0) / N_BATCH
+
+
+def test_scipy_root_baseline(benchmark):
+    disc = solver._cached_disc(MODEL, False)
+    nn = disc.NX.shape[0]
+    W = np.array([*FORCE, 0.0, 0.0, 0.0])
+    E = np.empty((nn, 18))
+    dummy = np.empty((1, 18))
+    res = np.empty(6 * nn + 6)
+
+    def fun(y):
+        for k in range(nn):
+            kernel.integrate(y[6 * k: 6 * k + 6], disc.NX[k, 0], disc.NX[k, 1], disc.SZ, disc.SK, disc.SKH,
+                             disc.SKZ, disc.SKT, disc.SN, disc.P, E[k], dummy, False)
+        kernel.residual(E, y[6 * nn:], disc.NX, disc.P0, W, 1.0, disc.P, res)
+        return res.copy()
+
+    def run():
+        return root(fun, np.zeros(6 * nn + 6), method="hybr", tol=1e-12)
+
+    sol = benchmark(run)
+    assert sol.success
+    ref = frame.pose(FORCE, model=MODEL)
+    assert abs(sol.x[6 * nn + 1] * disc.P[kernel.LS] - frame.solve(FORCE, model=MODEL).load_point_displacement_mm[1]) < 1e-6
+    assert ref is not None
+    _MED["scipy_root"] = benchmark.stats.stats.median, _cpu(run, 10)

@@ -1,0 +1,562 @@
+"""Compiled (Numba) core: the Cosserat-rod equations of each needle, shooting, and the clamp's Newton.
+
+Each needle is a geometrically exact (Reissner/Simo) rod, parametrised by its reference coordinate z
+(z = 0 the bone surface). State along z: position r (3), rotation R (3x3, columns = the section's
+director triad; R = I unloaded, e3 along the needle), internal force n and moment m (3 each, global
+frame; what the part above z exerts on the part below):
+
+    r' = R (e3 + Gamma),  Gamma = C_G^-1 R^T n,   C_G = diag(kGA, kGA, EA)     (shear, extension)
+    R' = R [kappa]x,      kappa = C_K^-1 R^T m,   C_K = diag(EI, EI, GJ)       (bending, torsion)
+    n' = -f(r, z),        m' = -r' x n
+
+with the distributed support f per unit reference length: bone (linear foundation, lateral k_h and
+axial k_z on u = r - X, torsional k_t on the twist), tissue (the paper's F = k (x + x^3) on the lateral displacement x = |u_xy|),
+nothing above the skin. RK4 with fixed steps inside each segment (segment ends on the layer
+interfaces, where f jumps).
+
+Boundary values: at the tip in the bone n = k_tip u_z e3, m = 0 (end bearing), unknown r, R;
+with a rigid root (z = 0): r = X, R = I, unknown n, m. At the clamp end z_c: r = P0 + c + Q (X - P0),
+R = Q with the clamp pose (c, Q = exp(phi)). Unknowns: 6 per needle (shooting) + 6 of the clamp; the
+residuals: 6 per needle (end mismatch) + 6 clamp equilibrium with the applied wrench (dead load) at
+P0 + c. Newton with a forward-difference Jacobian (one integration per needle unknown), load
+stepping with cut-back.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# constants vector P
+EI, GJ, EA, KGA, SHEAR, KTIP, LS, FS, MS, Z0, ZC, RIGID, NPL = range(13)
+NP = 13
+# With an elastic-plastic section, P[NP:] holds the moment-curvature table of the section: NPL points
+# curvature kappa_i (1/mm) then moment M_i (N mm), monotonic loading (deformation theory).
+OK, MAX_ITER, NOT_FINITE, CUTBACK = 0, 1, 2, 3
+_FD = 1e-7
+_MAXIT = 25
+
+
+@njit(cache=True)
+def expm(w, R):
+    """Rotation matrix of the rotation vector w (Rodrigues), into R (3x3)."""
+    t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    if t2 < 1e-16:
+        a = 1.0 - t2 / 6.0
+        b = 0.5 - t2 / 24.0
+    else:
+        t = np.sqrt(t2)
+        a = np.sin(t) / t
+        b = (1.0 - np.cos(t)) / t2
+    x, y, z = w[0], w[1], w[2]
+    R[0, 0] = 1.0 - b * (y * y + z * z)
+    R[1, 1] = 1.0 - b * (x * x + z * z)
+    R[2, 2] = 1.0 - b * (x * x + y * y)
+    R[0, 1] = -a * z + b * x * y
+    R[1, 0] = a * z + b * x * y
+    R[0, 2] = a * y + b * x * z
+    R[2, 0] = -a * y + b * x * z
+    R[1, 2] = -a * x + b * y * z
+    R[2, 1] = a * x + b * y * z
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _rhs(z, s, x0, y0, kind, kh, kz, kt, P, ds):
+    # R row-major in s[3:12]: R[i, j] = s[3 + 3 i + j]
+    n0, n1, n2 = s[12], s[13], s[14]
+    m0, m1, m2 = s[15], s[16], s[17]
+    # local force and moment: R^T n, R^T m
+    nl0 = s[3] * n0 + s[6] * n1 + s[9] * n2
+    nl1 = s[4] * n0 + s[7] * n1 + s[10] * n2
+    nl2 = s[5] * n0 + s[8] * n1 + s[11] * n2
+    ml0 = s[3] * m0 + s[6] * m1 + s[9] * m2
+    ml1 = s[4] * m0 + s[7] * m1 + s[10] * m2
+    ml2 = s[5] * m0 + s[8] * m1 + s[11] * m2
+    if P[SHEAR] > 0.0:
+        g0 = nl0 / P[KGA]
+        g1 = nl1 / P[KGA]
+        g2 = 1.0 + nl2 / P[EA]
+    else:
+        g0 = 0.0
+        g1 = 0.0
+        g2 = 1.0
+    t0 = s[3] * g0 + s[4] * g1 + s[5] * g2
+    t1 = s[6] * g0 + s[7] * g1 + s[8] * g2
+    t2 = s[9] * g0 + s[10] * g1 + s[11] * g2
+    ds[0] = t0
+    ds[1] = t1
+    ds[2] = t2
+    k0 = ml0 / P[EI]
+    k1 = ml1 / P[EI]
+    k2 = ml2 / P[GJ]
+    npl = int(P[NPL])
+    if npl > 0:
+        mb = np.sqrt(ml0 * ml0 + ml1 * ml1)
+        base = NP + npl
+        if mb > P[base + 1]:  # beyond the first table segment (elastic up to first yield)
+            lo = 1
+            hi = npl - 1
+            if mb >= P[base + hi]:
+                j = hi - 1
+            else:
+                while hi - lo > 1:
+                    mid = (lo + hi) // 2
+                    if P[base + mid] <= mb:
+                        lo = mid
+                    else:
+                        hi = mid
+                j = lo
+            kap = P[NP + j] + (mb - P[base + j]) * (P[NP + j + 1] - P[NP + j]) / (P[base + j + 1] - P[base + j])
+            f = kap / mb
+            k0 = ml0 * f
+            k1 = ml1 * f
+    # R' = R [k]x ; [k]x = [[0,-k2,k1],[k2,0,-k0],[-k1,k0,0]]
+    for i in range(3):
+        a = s[3 + 3 * i]
+        b = s[4 + 3 * i]
+        c = s[5 + 3 * i]
+        ds[3 + 3 * i] = b * k2 - c * k1
+        ds[4 + 3 * i] = -a * k2 + c * k0
+        ds[5 + 3 * i] = a * k1 - b * k0
+    ux = s[0] - x0
+    uy = s[1] - y0
+    uz = s[2] - z
+    if kind == 0:
+        f0 = -kh * ux
+        f1 = -kh * uy
+        f2 = -kz * uz
+    elif kind == 1:
+        w = kh * (1.0 + ux * ux + uy * uy)
+        f0 = -w * ux
+        f1 = -w * uy
+        f2 = 0.0
+    else:
+        f0 = 0.0
+        f1 = 0.0
+        f2 = 0.0
+    ds[12] = -f0
+    ds[13] = -f1
+    ds[14] = -f2
+    # m' = -r' x n - l, l = -kt psi e3 the bone's torsional restraint (psi: twist about z)
+    ds[15] = -(t1 * n2 - t2 * n1)
+    ds[16] = -(t2 * n0 - t0 * n2)
+    ds[17] = -(t0 * n1 - t1 * n0)
+    if kind == 0:
+        ds[17] += kt * 0.5 * (s[6] - s[4])
+
+
+@njit(cache=True)
+def _start(a, x0, y0, P, s, Rw):
+    """Initial state at the root from the 6 (scaled) shooting unknowns a."""
+    for i in range(18):
+        s[i] = 0.0
+    if P[RIGID] > 0.0:
+        s[0] = x0
+        s[1] = y0
+        s[2] = P[Z0]
+        s[3] = 1.0
+        s[7] = 1.0
+        s[11] = 1.0
+        for i in range(3):
+            s[12 + i] = a[i] * P[FS]
+            s[15 + i] = a[3 + i] * P[MS]
+    else:
+        s[0] = x0 + a[0] * P[LS]
+        s[1] = y0 + a[1] * P[LS]
+        s[2] = P[Z0] + a[2] * P[LS]
+        expm(a[3:6], Rw)
+        for i in range(3):
+            for j in range(3):
+                s[3 + 3 * i + j] = Rw[i, j]
+        s[14] = P[KTIP] * a[2] * P[LS]
+
+
+@njit(cache=True, fastmath=True)
+def integrate(a, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, end, store, do_store):
+    """Integrate one needle from its root to the clamp; end state into `end` (18); with do_store the
+    state at every step boundary into store (nodes, 18)."""
+    s = np.empty(18)
+    k1 = np.empty(18)
+    k2 = np.empty(18)
+    k3 = np.empty(18)
+    k4 = np.empty(18)
+    t = np.empty(18)
+    Rw = np.empty((3, 3))
+    _start(a, x0, y0, P, s, Rw)
+    node = 0
+    if do_store:
+        store[0, :] = s
+    for g in range(SK.shape[0]):
+        za = SZ[g]
+        nst = SN[g]
+        h = (SZ[g + 1] - za) / nst
+        kind = SK[g]
+        kh = SKH[g]
+        kz = SKZ[g]
+        kt = SKT[g]
+        for st in range(nst):
+            z = za + st * h
+            _rhs(z, s, x0, y0, kind, kh, kz, kt, P, k1)
+            for i in range(18):
+                t[i] = s[i] + 0.5 * h * k1[i]
+            _rhs(z + 0.5 * h, t, x0, y0, kind, kh, kz, kt, P, k2)
+            for i in range(18):
+                t[i] = s[i] + 0.5 * h * k2[i]
+            _rhs(z + 0.5 * h, t, x0, y0, kind, kh, kz, kt, P, k3)
+            for i in range(18):
+                t[i] = s[i] + h * k3[i]
+            _rhs(z + h, t, x0, y0, kind, kh, kz, kt, P, k4)
+            for i in range(18):
+                s[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+            node += 1
+            if do_store:
+                store[node, :] = s
+    for i in range(18):
+        end[i] = s[i]
+
+
+@njit(cache=True)
+def residual(E, yc, NX, P0, W, lam, P, res):
+    """Scaled residuals: per needle end position and rotation mismatch, then the clamp's equilibrium."""
+    nn = NX.shape[0]
+    Q = np.empty((3, 3))
+    expm(yc[3:6], Q)
+    c0 = yc[0] * P[LS]
+    c1 = yc[1] * P[LS]
+    c2 = yc[2] * P[LS]
+    p0 = P0[0] + c0
+    p1 = P0[1] + c1
+    p2 = P0[2] + c2
+    F0 = lam * W[0]
+    F1 = lam * W[1]
+    F2 = lam * W[2]
+    M0 = lam * W[3]
+    M1 = lam * W[4]
+    M2 = lam * W[5]
+    for k in range(nn):
+        X0 = NX[k, 0] - P0[0]
+        X1 = NX[k, 1] - P0[1]
+        X2 = P[ZC] - P0[2]
+        for i in range(3):
+            target = P0[i] + yc[i] * P[LS] + Q[i, 0] * X0 + Q[i, 1] * X1 + Q[i, 2] * X2
+            res[6 * k + i] = (E[k, i] - target) / P[LS]
+        # 0.5 vee(Q^T R - R^T Q), R[i, j] = E[k, 3 + 3 i + j]
+        A = np.zeros((3, 3))
+        for i in range(3):
+            for j in range(3):
+                v = 0.0
+                for m in range(3):
+                    v += Q[m, i] * E[k, 3 + 3 * m + j]
+                A[i, j] = v
+        res[6 * k + 3] = 0.5 * (A[2, 1] - A[1, 2])
+        res[6 * k + 4] = 0.5 * (A[0, 2] - A[2, 0])
+        res[6 * k + 5] = 0.5 * (A[1, 0] - A[0, 1])
+        n0, n1, n2 = E[k, 12], E[k, 13], E[k, 14]
+        r0 = E[k, 0] - p0
+        r1 = E[k, 1] - p1
+        r2 = E[k, 2] - p2
+        F0 -= n0
+        F1 -= n1
+        F2 -= n2
+        M0 -= E[k, 15] + r1 * n2 - r2 * n1
+        M1 -= E[k, 16] + r2 * n0 - r0 * n2
+        M2 -= E[k, 17] + r0 * n1 - r1 * n0
+    b = 6 * nn
+    res[b] = F0 / P[FS]
+    res[b + 1] = F1 / P[FS]
+    res[b + 2] = F2 / P[FS]
+    res[b + 3] = M0 / P[MS]
+    res[b + 4] = M1 / P[MS]
+    res[b + 5] = M2 / P[MS]
+
+
+@njit(cache=True)
+def _norm(v):
+    x = 0.0
+    for i in range(v.shape[0]):
+        a = abs(v[i])
+        if not a < np.inf:  # NaN or inf: max() would drop a NaN
+            return np.inf
+        x = max(x, a)
+    return x
+
+
+@njit(cache=True)
+def newton(y, lam, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, maxit):
+    """Newton on all unknowns y (in place) at load factor lam. Returns (iterations, status)."""
+    nn = NX.shape[0]
+    N = 6 * nn + 6
+    E = np.empty((nn, 18))
+    E2 = np.empty((nn, 18))
+    dummy = np.empty((1, 18))
+    res = np.empty(N)
+    r2 = np.empty(N)
+    J = np.empty((N, N))
+    a = np.empty(6)
+    for k in range(nn):
+        integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k], dummy, False)
+    residual(E, y[6 * nn:], NX, P0, W, lam, P, res)
+    for it in range(maxit):
+        rn = _norm(res)
+        if not np.isfinite(rn):
+            return it, NOT_FINITE
+        if rn <= tol:
+            return it, OK
+        # Jacobian: needle columns need one integration each; clamp columns only the algebra
+        for k in range(nn):
+            for j in range(6):
+                for i in range(6):
+                    a[i] = y[6 * k + i]
+                a[j] += _FD
+                for q in range(nn):
+                    for i in range(18):
+                        E2[q, i] = E[q, i]
+                integrate(a, NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E2[k], dummy, False)
+                residual(E2, y[6 * nn:], NX, P0, W, lam, P, r2)
+                for i in range(N):
+                    J[i, 6 * k + j] = (r2[i] - res[i]) / _FD
+        yc = y[6 * nn:].copy()
+        for j in range(6):
+            yc[j] += _FD
+            residual(E, yc, NX, P0, W, lam, P, r2)
+            yc[j] -= _FD
+            for i in range(N):
+                J[i, 6 * nn + j] = (r2[i] - res[i]) / _FD
+        for i in range(N):
+            for j in range(N):
+                if not np.isfinite(J[i, j]):
+                    return it, NOT_FINITE
+        dy = np.linalg.solve(J, -res)
+        if not np.isfinite(_norm(dy)):
+            return it, NOT_FINITE
+        for i in range(N):
+            y[i] += dy[i]
+        for k in range(nn):
+            integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k], dummy, False)
+        residual(E, y[6 * nn:], NX, P0, W, lam, P, res)
+        if not (_norm(res) < 1e3 * max(rn, 1e-3)):
+            return it + 1, NOT_FINITE  # diverging: let the caller cut the load step
+    if _norm(res) <= tol:
+        return maxit, OK
+    return maxit, MAX_ITER
+
+
+@njit(cache=True)
+def solve_path(y, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, max_cuts):
+    """Load stepping from y (a converged state at load factor 0, or a guess at 1) to lam = 1.
+
+    Tries the whole load first; halves the increment on failure (cut-back) at most max_cuts times in a
+    row. Returns (total Newton iterations, status, steps)."""
+    N = y.shape[0]
+    yprev = y.copy()
+    lam = 0.0
+    dl = 1.0
+    total = 0
+    steps = 0
+    cuts = 0
+    while lam < 1.0:
+        target = min(1.0, lam + dl)
+        it, st = newton(y, target, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, _MAXIT)
+        total += it
+        if st == OK:
+            lam = target
+            steps += 1
+            for i in range(N):
+                yprev[i] = y[i]
+            cuts = 0
+            if it <= 4:
+                dl *= 2.0
+        else:
+            for i in range(N):
+                y[i] = yprev[i]
+            dl *= 0.5
+            cuts += 1
+            if cuts > max_cuts:
+                return total, CUTBACK, steps
+    return total, OK, steps
+
+
+@njit(cache=True)
+def states(y, NX, SZ, SK, SKH, SKZ, SKT, SN, P, store):
+    """Node states of every needle at the solution y: store (needles, nodes, 18)."""
+    end = np.empty(18)
+    for k in range(NX.shape[0]):
+        integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, end, store[k], True)
+
+
+@njit(cache=True)
+def jacobian(y, lam, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, J):
+    """Forward-difference Jacobian of the residual at y into J (the tangent Newton uses)."""
+    nn = NX.shape[0]
+    N = 6 * nn + 6
+    E = np.empty((nn, 18))
+    E2 = np.empty((nn, 18))
+    dummy = np.empty((1, 18))
+    res = np.empty(N)
+    r2 = np.empty(N)
+    a = np.empty(6)
+    for k in range(nn):
+        integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k], dummy, False)
+    residual(E, y[6 * nn:], NX, P0, W, lam, P, res)
+    for k in range(nn):
+        for j in range(6):
+            for i in range(6):
+                a[i] = y[6 * k + i]
+            a[j] += _FD
+            for q in range(nn):
+                for i in range(18):
+                    E2[q, i] = E[q, i]
+            integrate(a, NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E2[k], dummy, False)
+            residual(E2, y[6 * nn:], NX, P0, W, lam, P, r2)
+            for i in range(N):
+                J[i, 6 * k + j] = (r2[i] - res[i]) / _FD
+    yc = y[6 * nn:].copy()
+    for j in range(6):
+        yc[j] += _FD
+        residual(E, yc, NX, P0, W, lam, P, r2)
+        yc[j] -= _FD
+        for i in range(N):
+            J[i, 6 * nn + j] = (r2[i] - res[i]) / _FD
+
+
+@njit(cache=True)
+def broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, maxit):
+    """Quasi-Newton at the full load from y (in place) with the inverse tangent H (in place, updated by
+    Broyden's 'good' rank-one formula): one integration per needle and iteration. For the control loop:
+    H from the unloaded state (a model constant) or from the last solve. Returns (iterations, status)."""
+    nn = NX.shape[0]
+    N = 6 * nn + 6
+    E = np.empty((nn, 18))
+    dummy = np.empty((1, 18))
+    res = np.empty(N)
+    rnew = np.empty(N)
+    s = np.empty(N)
+    dr = np.empty(N)
+    Hd = np.empty(N)
+    sH = np.empty(N)
+    for k in range(nn):
+        integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k], dummy, False)
+    residual(E, y[6 * nn:], NX, P0, W, 1.0, P, res)
+    rn = _norm(res)
+    for it in range(maxit):
+        if not np.isfinite(rn):
+            return it, NOT_FINITE
+        if rn <= tol:
+            return it, OK
+        for i in range(N):
+            v = 0.0
+            for j in range(N):
+                v -= H[i, j] * res[j]
+            s[i] = v
+        for i in range(N):
+            y[i] += s[i]
+        for k in range(nn):
+            integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k], dummy, False)
+        residual(E, y[6 * nn:], NX, P0, W, 1.0, P, rnew)
+        rn2 = _norm(rnew)
+        if not (rn2 < 10.0 * rn + 1e-300):
+            return it + 1, NOT_FINITE
+        for i in range(N):
+            dr[i] = rnew[i] - res[i]
+        # H += (s - H dr) s^T H / (s^T H dr)
+        den = 0.0
+        for i in range(N):
+            v = 0.0
+            for j in range(N):
+                v += H[i, j] * dr[j]
+            Hd[i] = v
+        for j in range(N):
+            v = 0.0
+            for i in range(N):
+                v += s[i] * H[i, j]
+            sH[j] = v
+        for i in range(N):
+            den += s[i] * Hd[i]
+        if den != 0.0:
+            for i in range(N):
+                c = (s[i] - Hd[i]) / den
+                for j in range(N):
+                    H[i, j] += c * sH[j]
+        for i in range(N):
+            res[i] = rnew[i]
+        rn = rn2
+    if rn <= tol:
+        return maxit, OK
+    return maxit, MAX_ITER
+
+
+@njit(cache=True)
+def key_numbers(y, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, out):
+    """Clamp-centre displacement (3), clamp rotation vector (3) and the max needle deflection into out (7),
+    compiled (the control loop's answer without the Python post-processing)."""
+    nn = NX.shape[0]
+    Q = np.empty((3, 3))
+    expm(y[6 * nn + 3: 6 * nn + 6], Q)
+    c = np.empty(3)
+    for i in range(3):
+        c[i] = y[6 * nn + i] * P[LS]
+    for i in range(3):
+        v = c[i]
+        for j in range(3):
+            v += (Q[i, j] - (1.0 if i == j else 0.0)) * (C[j] - P0[j])
+        out[i] = v
+        out[3 + i] = y[6 * nn + 3 + i]
+    nodes = 1
+    for g in range(SN.shape[0]):
+        nodes += SN[g]
+    store = np.empty((nodes, 18))
+    end = np.empty(18)
+    best = 0.0
+    for k in range(nn):
+        integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, end, store, True)
+        q = 0
+        z = SZ[0]
+        best = max(best, (store[0, 0] - NX[k, 0]) ** 2 + (store[0, 1] - NX[k, 1]) ** 2 + (store[0, 2] - z) ** 2)
+        for g in range(SN.shape[0]):
+            h = (SZ[g + 1] - SZ[g]) / SN[g]
+            for st in range(SN[g]):
+                q += 1
+                z = SZ[g] + (st + 1) * h
+                d = (store[q, 0] - NX[k, 0]) ** 2 + (store[q, 1] - NX[k, 1]) ** 2 + (store[q, 2] - z) ** 2
+                best = max(best, d)
+        X = np.array([NX[k, 0] - P0[0], NX[k, 1] - P0[1], zc_top - P0[2]])
+        d = 0.0
+        for i in range(3):
+            v = c[i]
+            for j in range(3):
+                v += (Q[i, j] - (1.0 if i == j else 0.0)) * X[j]
+            d += v * v
+        best = max(best, d)
+    out[6] = np.sqrt(best)
+
+
+@njit(cache=True)
+def batch(F, M, y0, H0, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, out, status):
+    """N wrenches (rows of F, M) with one model: Broyden from the unloaded state and tangent for each,
+    Newton with load stepping when that fails. out (N, 7) as key_numbers; status (N, 2): iterations, code."""
+    W = np.empty(6)
+    for m in range(F.shape[0]):
+        for i in range(3):
+            W[i] = F[m, i]
+            W[3 + i] = M[m, i]
+        y = y0.copy()
+        H = H0.copy()
+        it, st = broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol[m], 40)
+        if st != OK:
+            y = y0.copy()
+            it2, st, steps = solve_path(y, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol[m], 12)
+            it += it2
+        status[m, 0] = it
+        status[m, 1] = st
+        if st == OK:
+            key_numbers(y, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, out[m])
+
+
+@njit(cache=True)
+def pose_solve(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, out):
+    """Broyden from (y, H) then the key numbers, in one call (one dispatch from Python: the control loop).
+    Returns (iterations, status); on status != OK the caller falls back to Newton with load stepping."""
+    it, st = broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, 40)
+    if st == OK:
+        key_numbers(y, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, out)
+    return it, st
