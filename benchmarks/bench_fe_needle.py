@@ -95,9 +95,13 @@ def main():
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--write-docs", action="store_true")
+    ap.add_argument("--from-json", action="store_true", help="only rewrite docs/bench.md from the last results")
     a = ap.parse_args()
     if a.one:
         print(json.dumps(run_one(*a.one)))
+        return
+    if a.from_json:
+        write_docs(table(json.loads((HERE / "results" / "bench_fe_needle.json").read_text())["runs"]))
         return
     variants = a.variants.split(",")
     with tempfile.TemporaryDirectory() as tmp:
@@ -125,11 +129,15 @@ def main():
     (HERE / "results").mkdir(exist_ok=True)
     (HERE / "results" / "bench_fe_needle.json").write_text(json.dumps(res, indent=1))
     if a.write_docs:
-        doc = ROOT / "docs" / "bench.md"
-        text = doc.read_text()
-        start, end = "<!-- bench_fe_needle:start -->", "<!-- bench_fe_needle:end -->"
-        i, j = text.index(start) + len(start), text.index(end)
-        doc.write_text(text[:i] + "\n" + md + "\n" + text[j:])
+        write_docs(md)
+
+
+def write_docs(md: str):
+    doc = ROOT / "docs" / "bench.md"
+    text = doc.read_text()
+    start, end = "<!-- bench_fe_needle:start -->", "<!-- bench_fe_needle:end -->"
+    i, j = text.index(start) + len(start), text.index(end)
+    doc.write_text(text[:i] + "\n" + md + "\n" + text[j:])
 
 
 if __name__ == "__main__":
