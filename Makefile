@@ -24,6 +24,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m pytest -q benchmarks/ --benchmark-only -p no:cacheprovider
+	$(BIN)/python benchmarks/bench_fe_needle.py --repeat 2 --write-docs  # refreshes docs/bench.md
 
 clean:
 	rm -rf $(VENV) results/ .pytest_cache

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from contextlib import nullcontext
+from contextlib import closing, nullcontext
 
 import numpy as np
 
@@ -194,7 +194,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     newton_s = 0.0
     norms: list[list[float]] = []
     out = []
-    with bar if progress else nullcontext(), linsolve.single_threaded_openblas():
+    with bar if progress else nullcontext(), linsolve.single_threaded_openblas(), closing(linear):
         for target in lams:
             while lam < target * (1 - 1e-12):
                 # equal sub-steps no larger than the allowed increment (no tiny remainders)

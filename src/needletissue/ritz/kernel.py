@@ -123,6 +123,203 @@ def _energy(c, n, Q, phi, dphi, W, cos_term, kb, F, phi3, grad, g, H):
     return eb + es - wk, eb, es, wk
 
 
+# Orders 3 and 4 (n = 2, 3 coefficients: the default order and its error estimate) unrolled by hand,
+# on a transposed copy S of the basis values (S[i] = phi_i, S[n + i] = dphi_i at the Gauss points),
+# so that the loop over points runs 4 points per AVX instruction. That needs two fast-math flags:
+# 'reassoc' (sums over points in another order) and 'contract' (fused multiply-add); both only
+# change round-off (tests/ritz/test_ritz_fast.py: same results as _energy to 1e-12). No 'nnan' or
+# 'ninf': the Newton loop relies on inf/nan to report a non-finite energy.
+_FM = {"reassoc", "contract"}
+
+
+@njit(cache=True, fastmath=_FM)
+def _energy2(c, Q, S, W, cos_term, kb, F, phi3, grad, g, H):
+    c0 = c[0]
+    c1 = c[1]
+    eb = 0.5 * kb * (c0 * c0 + c1 * c1)
+    wk = F * (c0 * phi3[0] + c1 * phi3[1])
+    es = 0.0
+    if not grad:
+        for q in range(Q):
+            v = c0 * S[0, q] + c1 * S[1, q]
+            y = v * v
+            if cos_term:
+                d = c0 * S[2, q] + c1 * S[3, q]
+                y *= 1.0 + d * d
+            es += W[q] * (0.5 * y + 0.25 * y * y)
+        return eb + es - wk, eb, es, wk
+    g0 = kb * c0 - F * phi3[0]
+    g1 = kb * c1 - F * phi3[1]
+    h00 = kb
+    h10 = 0.0
+    h11 = kb
+    if cos_term:
+        for q in range(Q):
+            a0 = S[0, q]
+            a1 = S[1, q]
+            b0 = S[2, q]
+            b1 = S[3, q]
+            w = W[q]
+            v = c0 * a0 + c1 * a1
+            d = c0 * b0 + c1 * b1
+            f = 1.0 + d * d
+            y = v * v * f
+            es += w * (0.5 * y + 0.25 * y * y)
+            ey = 0.5 * w * (1.0 + y)
+            eyy = 0.5 * w
+            yv = 2.0 * v * f
+            yp = 2.0 * v * v * d
+            ev = ey * yv
+            ep = ey * yp
+            evv = eyy * yv * yv + ey * 2.0 * f
+            evp = eyy * yv * yp + ey * 4.0 * v * d
+            epp = eyy * yp * yp + ey * 2.0 * v * v
+            g0 += ev * a0 + ep * b0
+            g1 += ev * a1 + ep * b1
+            h00 += evv * a0 * a0 + 2.0 * evp * a0 * b0 + epp * b0 * b0
+            h10 += evv * a1 * a0 + evp * (a1 * b0 + b1 * a0) + epp * b1 * b0
+            h11 += evv * a1 * a1 + 2.0 * evp * a1 * b1 + epp * b1 * b1
+    else:
+        for q in range(Q):
+            a0 = S[0, q]
+            a1 = S[1, q]
+            w = W[q]
+            v = c0 * a0 + c1 * a1
+            y = v * v
+            es += w * (0.5 * y + 0.25 * y * y)
+            ey = 0.5 * w * (1.0 + y)
+            ev = ey * 2.0 * v
+            evv = 2.0 * w * v * v + ey * 2.0
+            g0 += ev * a0
+            g1 += ev * a1
+            h00 += evv * a0 * a0
+            h10 += evv * a1 * a0
+            h11 += evv * a1 * a1
+    g[0] = g0
+    g[1] = g1
+    H[0, 0] = h00
+    H[1, 0] = h10
+    H[1, 1] = h11
+    return eb + es - wk, eb, es, wk
+
+
+@njit(cache=True, fastmath=_FM)
+def _energy3(c, Q, S, W, cos_term, kb, F, phi3, grad, g, H):
+    c0 = c[0]
+    c1 = c[1]
+    c2 = c[2]
+    eb = 0.5 * kb * (c0 * c0 + c1 * c1 + c2 * c2)
+    wk = F * (c0 * phi3[0] + c1 * phi3[1] + c2 * phi3[2])
+    es = 0.0
+    if not grad:
+        for q in range(Q):
+            v = c0 * S[0, q] + c1 * S[1, q] + c2 * S[2, q]
+            y = v * v
+            if cos_term:
+                d = c0 * S[3, q] + c1 * S[4, q] + c2 * S[5, q]
+                y *= 1.0 + d * d
+            es += W[q] * (0.5 * y + 0.25 * y * y)
+        return eb + es - wk, eb, es, wk
+    g0 = kb * c0 - F * phi3[0]
+    g1 = kb * c1 - F * phi3[1]
+    g2 = kb * c2 - F * phi3[2]
+    h00 = kb
+    h10 = 0.0
+    h11 = kb
+    h20 = 0.0
+    h21 = 0.0
+    h22 = kb
+    if cos_term:
+        for q in range(Q):
+            a0 = S[0, q]
+            a1 = S[1, q]
+            a2 = S[2, q]
+            b0 = S[3, q]
+            b1 = S[4, q]
+            b2 = S[5, q]
+            w = W[q]
+            v = c0 * a0 + c1 * a1 + c2 * a2
+            d = c0 * b0 + c1 * b1 + c2 * b2
+            f = 1.0 + d * d
+            y = v * v * f
+            es += w * (0.5 * y + 0.25 * y * y)
+            ey = 0.5 * w * (1.0 + y)
+            eyy = 0.5 * w
+            yv = 2.0 * v * f
+            yp = 2.0 * v * v * d
+            ev = ey * yv
+            ep = ey * yp
+            evv = eyy * yv * yv + ey * 2.0 * f
+            evp = eyy * yv * yp + ey * 4.0 * v * d
+            epp = eyy * yp * yp + ey * 2.0 * v * v
+            # H = sum [a b] [[evv, evp], [evp, epp]] [a b]^T, through u = evv a + evp b, t = evp a + epp b
+            u0 = evv * a0 + evp * b0
+            u1 = evv * a1 + evp * b1
+            u2 = evv * a2 + evp * b2
+            t0 = evp * a0 + epp * b0
+            t1 = evp * a1 + epp * b1
+            t2 = evp * a2 + epp * b2
+            g0 += ev * a0 + ep * b0
+            g1 += ev * a1 + ep * b1
+            g2 += ev * a2 + ep * b2
+            h00 += u0 * a0 + t0 * b0
+            h10 += u1 * a0 + t1 * b0
+            h11 += u1 * a1 + t1 * b1
+            h20 += u2 * a0 + t2 * b0
+            h21 += u2 * a1 + t2 * b1
+            h22 += u2 * a2 + t2 * b2
+    else:
+        for q in range(Q):
+            a0 = S[0, q]
+            a1 = S[1, q]
+            a2 = S[2, q]
+            w = W[q]
+            v = c0 * a0 + c1 * a1 + c2 * a2
+            y = v * v
+            es += w * (0.5 * y + 0.25 * y * y)
+            ey = 0.5 * w * (1.0 + y)
+            ev = ey * 2.0 * v
+            evv = 2.0 * w * v * v + ey * 2.0
+            g0 += ev * a0
+            g1 += ev * a1
+            g2 += ev * a2
+            h00 += evv * a0 * a0
+            h10 += evv * a1 * a0
+            h11 += evv * a1 * a1
+            h20 += evv * a2 * a0
+            h21 += evv * a2 * a1
+            h22 += evv * a2 * a2
+    g[0] = g0
+    g[1] = g1
+    g[2] = g2
+    H[0, 0] = h00
+    H[1, 0] = h10
+    H[1, 1] = h11
+    H[2, 0] = h20
+    H[2, 1] = h21
+    H[2, 2] = h22
+    return eb + es - wk, eb, es, wk
+
+
+@njit(cache=True)
+def _transpose(Q, n, phi, dphi, S):
+    """S[i, q] = phi[q, i], S[n + i, q] = dphi[q, i] (the layout of _energy2/3)."""
+    for i in range(n):
+        for q in range(Q):
+            S[i, q] = phi[q, i]
+            S[n + i, q] = dphi[q, i]
+
+
+@njit(cache=True)
+def _energy_any(c, n, Q, phi, dphi, W, cos_term, kb, F, phi3, grad, g, H, fast, S):
+    """_energy, through the unrolled n = 2, 3 versions when fast (the reference path otherwise)."""
+    if fast and n == 2:
+        return _energy2(c, Q, S, W, cos_term, kb, F, phi3, grad, g, H)
+    if fast and n == 3:
+        return _energy3(c, Q, S, W, cos_term, kb, F, phi3, grad, g, H)
+    return _energy(c, n, Q, phi, dphi, W, cos_term, kb, F, phi3, grad, g, H)
+
+
 @njit(cache=True)
 def _cholesky_solve(H, g, n, shift, Lw, d):
     """d = -(H + shift I)^-1 g from the lower triangle of H; False if not positive definite."""
@@ -151,17 +348,19 @@ def _cholesky_solve(H, g, n, shift, Lw, d):
 
 
 @njit(cache=True)
-def _newton(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, wk):
+def _newton(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, wk, fast):
     """Minimise Pi over order-p trial functions starting from c (in place). Returns (iterations, status).
 
     Converged when a full, positive-definite Newton step is below 1e-9 |c| (+1e-13 mm): Newton's
     quadratic rate leaves an error of order the square of that step.
     """
-    P, phi, dphi, W, phi3, dphi3, g, H, g2, H2, Lw, d, ct = wk
+    P, phi, dphi, W, phi3, dphi3, g, H, g2, H2, Lw, d, ct, S = wk
     n = p - 1
     Q = _points(p, l, T, K, cos_term, A, Ad, GX, GW, P, phi, dphi, W)
+    if fast and n <= 3:
+        _transpose(Q, n, phi, dphi, S)
     _basis_at(2.0 * z3 / l - 1.0, n, A, Ad, P, phi3, dphi3)
-    pi, eb, es, w = _energy(c, n, Q, phi, dphi, W, cos_term, kb, F, phi3, True, g, H)
+    pi, eb, es, w = _energy_any(c, n, Q, phi, dphi, W, cos_term, kb, F, phi3, True, g, H, fast, S)
     for it in range(_MAXIT):
         if not np.isfinite(pi):
             return it, NOT_FINITE
@@ -181,7 +380,7 @@ def _newton(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, wk):
         # Full step, evaluated with gradient and Hessian (accepted almost always: reused next pass).
         for i in range(n):
             ct[i] = c[i] + d[i]
-        pt, ebt, est, wt = _energy(ct, n, Q, phi, dphi, W, cos_term, kb, F, phi3, True, g2, H2)
+        pt, ebt, est, wt = _energy_any(ct, n, Q, phi, dphi, W, cos_term, kb, F, phi3, True, g2, H2, fast, S)
         scale = abs(eb) + abs(es) + abs(w) + 1e-300
         # Armijo on Pi; below the round-off of Pi (quadratic regime) the full step is taken.
         if pt <= pi + 1e-4 * slope or -slope <= 1e-13 * scale:
@@ -198,7 +397,7 @@ def _newton(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, wk):
         while True:
             for i in range(n):
                 ct[i] = c[i] + t * d[i]
-            pt = _energy(ct, n, Q, phi, dphi, W, cos_term, kb, F, phi3, False, g2, H2)[0]
+            pt = _energy_any(ct, n, Q, phi, dphi, W, cos_term, kb, F, phi3, False, g2, H2, fast, S)[0]
             if pt <= pi + 1e-4 * t * slope:
                 break
             t *= 0.5
@@ -206,7 +405,7 @@ def _newton(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, wk):
                 return it, LINE_SEARCH
         for i in range(n):
             c[i] = ct[i]
-        pi, eb, es, w = _energy(c, n, Q, phi, dphi, W, cos_term, kb, F, phi3, True, g, H)
+        pi, eb, es, w = _energy_any(c, n, Q, phi, dphi, W, cos_term, kb, F, phi3, True, g, H, fast, S)
     return _MAXIT, MAX_ITER
 
 
@@ -216,13 +415,13 @@ def _workspace(pmax, nl):
     qmax = max(nl, 1) * (4 * pmax - 1)
     return (np.empty(pmax + 2), np.empty((qmax, n)), np.empty((qmax, n)), np.empty(qmax),
             np.empty(n), np.empty(n), np.empty(n), np.empty((n, n)), np.empty(n), np.empty((n, n)),
-            np.empty((n, n)), np.empty(n), np.empty(n))
+            np.empty((n, n)), np.empty(n), np.empty(n), np.empty((2 * n, qmax)))
 
 
 @njit(cache=True)
-def _post(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, grid, gphi, wk, out, react):
+def _post(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, grid, gphi, wk, out, react, fast):
     """Deflections, slope, maximum, energies and per-layer spring reactions of a solved sample."""
-    P, phi, dphi, W, phi3, dphi3, g, H, g2, H2, Lw, d, ct = wk
+    P, phi, dphi, W, phi3, dphi3, g, H, g2, H2, Lw, d, ct, S = wk
     n = p - 1
     Q = _points(p, l, T, K, cos_term, A, Ad, GX, GW, P, phi, dphi, W)
     # load point
@@ -298,8 +497,26 @@ def _post(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, grid, gphi, wk, out
         react[j] = r
 
 
+@njit(cache=True)
+def _newton_any(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, wk, fast):
+    """_newton; on the fast path, orders 3 and 4 as literals (the compiler then specialises the loops
+    over coefficients and Gauss points: ~1.7x on the whole order-3 solve)."""
+    if fast and p == 3:
+        return _newton(3, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, wk, True)
+    if fast and p == 4:
+        return _newton(4, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, wk, True)
+    return _newton(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, wk, fast)
+
+
+@njit(cache=True)
+def _post_any(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, grid, gphi, wk, out, react, fast):
+    if fast and p == 3:
+        return _post(3, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, grid, gphi, wk, out, react, True)
+    return _post(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, grid, gphi, wk, out, react, fast)
+
+
 def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
-                 A, Ad, GX, GW, grid, gphi, C, S, R):
+                 A, Ad, GX, GW, grid, gphi, C, S, R, fast):
     nl = T.shape[1]
     wk = _workspace(pmax + 1, nl)
     c = np.zeros(pmax)
@@ -308,7 +525,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
         for i in range(pmax):
             c[i] = 0.0
         p = order
-        it, st = _newton(p, c, F[m], KB[m], L[m], Z3[m], T[m], K[m], cos_term, A, Ad, GX, GW, wk)
+        it, st = _newton_any(p, c, F[m], KB[m], L[m], Z3[m], T[m], K[m], cos_term, A, Ad, GX, GW, wk, fast)
         est = np.inf
         prev = np.inf  # change from order p - 1 to p
         while st == OK:
@@ -316,8 +533,8 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
             for i in range(pmax):
                 c2[i] = c[i]
             c2[p - 1] = 0.0
-            it2, st2 = _newton(p + 1, c2, F[m], KB[m], L[m], Z3[m], T[m], K[m], cos_term,
-                               A, Ad, GX, GW, wk)
+            it2, st2 = _newton_any(p + 1, c2, F[m], KB[m], L[m], Z3[m], T[m], K[m], cos_term,
+                               A, Ad, GX, GW, wk, fast)
             if st2 != OK:
                 st = st2
                 break
@@ -347,12 +564,12 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
         for i in range(pmax - 1):
             C[m, i] = c[i] if i < p - 1 else 0.0
         if st == OK:
-            _post(p, c, F[m], KB[m], L[m], Z3[m], T[m], K[m], cos_term, A, Ad, GX, GW, grid, gphi,
-                  wk, S[m], R[m])
+            _post_any(p, c, F[m], KB[m], L[m], Z3[m], T[m], K[m], cos_term, A, Ad, GX, GW, grid, gphi,
+                  wk, S[m], R[m], fast)
 
 
 def _solve_all(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, A, Ad, GX, GW, grid, gphi,
-               C, S, R, chunks):
+               C, S, R, chunks, fast):
     N = F.shape[0]
     size = (N + chunks - 1) // chunks
     for b in prange(chunks):
@@ -360,7 +577,7 @@ def _solve_all(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, A, Ad, GX, 
         stop = min(N, start + size)
         if start < stop:
             _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
-                         A, Ad, GX, GW, grid, gphi, C, S, R)
+                         A, Ad, GX, GW, grid, gphi, C, S, R, fast)
 
 
 _solve_range = njit(cache=True)(_solve_range)

@@ -20,6 +20,9 @@ from needletissue.ritz.model import MAX_DEFLECTION_RATIO, RitzModel
 
 DEFAULT_TOL_MM = 1e-4
 _PARALLEL_MIN = 2_000  # below this a thread pool costs more than it saves
+# Unrolled kernels for orders 3 and 4 (kernel._energy2/3). False selects the generic reference loops,
+# which the tests and benchmarks/bench_ritz.py compare against.
+_FAST = True
 
 
 @dataclass(frozen=True)
@@ -216,7 +219,7 @@ def _run(F, KB, L, Z3, T, K, cos_term, order, auto, max_order, tol, parallel):
         fn, chunks = kernel.solve_parallel, min(N, 8 * get_num_threads())
     else:
         fn, chunks = kernel.solve_serial, 1
-    fn(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, *_TABLES, C, S, R, chunks)
+    fn(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, *_TABLES, C, S, R, chunks, _FAST)
     status = S[:, kernel.STATUS]
     if status.any():
         bad = np.flatnonzero(status != kernel.OK)

@@ -1,0 +1,144 @@
+"""The one-needle model of issue 18 (`fe needle --needles 1`, 100/200/300 N, 8,972 tet10, 37,677 free
+dofs): wall, CPU, linear-solve time, Newton iterations and peak memory, previous vs current solver
+settings, back to back, each run in its own process (honest peak RSS).
+
+    nice python benchmarks/bench_fe_needle.py [--repeat 2] [--write-docs]
+
+The mesh is made once (gmsh, deterministic) and every run solves it from scratch. Variants:
+- previous: Pardiso analysed at every Newton iteration (linsolve.REUSE_ANALYSIS = False);
+- current: the defaults of this version;
+- current-mkl1: the same with MKL_NUM_THREADS=1 (Pardiso on one thread; FEBio was faster on one).
+Both must give the same displacement field (max |du| / max |u| is printed; <= 1e-6 required).
+Writes benchmarks/results/bench_fe_needle.json; --write-docs refreshes the table in docs/bench.md.
+Reference figures (issue 18, same mesh and loads, 2 cores): needletissue 43.3 s, FEBio 32.5 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+VARIANTS = ("previous", "current", "current-mkl1")
+FORCES = (100.0, 200.0, 300.0)
+ISSUE_TABLE = [  # issue 18, measured side by side on the shared 2-core machine
+    ("needletissue (issue 18)", 43.3, 33.8, 18, 824),
+    ("FEBio 4, 1 thread (issue 18)", 32.5, 26.8, 23, 333),
+    ("FEBio 4, 2 threads (issue 18)", 40.2, 31.0, 23, 332),
+]
+
+
+def make_mesh(path: Path):
+    from needletissue.geometry.needle import NeedleGeometry, mesh_needle_model
+
+    mesh_needle_model(NeedleGeometry(needles=1), path, order=2)
+
+
+def run_one(variant: str, mesh_path: str, u_out: str) -> dict:
+    """Solve the model as run_needle_model does (same materials, BCs, load path)."""
+    from needletissue.fem import Fixed, FEModel, SurfaceForce, TaggedMesh, linsolve, solve
+    from needletissue.models.needle.model import MATERIALS
+
+    if variant == "previous":
+        linsolve.REUSE_ANALYSIS = False
+    t0, c0 = time.perf_counter(), time.process_time()
+    mesh = TaggedMesh.read(mesh_path)
+    model = FEModel(mesh, {r: MATERIALS[r] for r in mesh.regions}, order=2, formulation="mixed")
+    fmax = max(FORCES)
+    bcs = [Fixed("bone_fixed"), Fixed("tissue_far"), SurfaceForce("gripper", total=(0.0, fmax, 0.0))]
+    res = solve(model, bcs, load_factors=[f / fmax for f in FORCES], progress=False)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    np.save(u_out, res[-1].displacement)
+    last = res[-1]
+    return {"variant": variant, "wall_s": wall, "cpu_s": cpu, "linear_solve_s": last.timing_s["linear_solve"],
+            "newton_s": last.timing_s["newton"], "newton_iterations": last.newton_iterations, "steps": last.steps,
+            "free_dofs": int(model.ndof), "residual_norms": last.residual_norms,
+            "iterations_per_force": [r.newton_iterations for r in res],
+            "peak_rss_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def child(variant: str, mesh_path: str, u_out: str) -> dict:
+    env = {**os.environ, **({"MKL_NUM_THREADS": "1"} if variant.endswith("-mkl1") else {})}
+    out = subprocess.run([sys.executable, __file__, "--one", variant, mesh_path, u_out], check=True,
+                         capture_output=True, text=True, env=env)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def table(runs: list[dict]) -> str:
+    rows = ["| | wall | CPU | linear solves | Newton iterations | peak memory |", "|---|---|---|---|---|---|"]
+    for name, wall, lin, nit, mem in ISSUE_TABLE:
+        rows.append(f"| {name} | {wall} s | | {lin} s | {nit} | {mem} MB |")
+    for v in VARIANTS:
+        rs = [r for r in runs if r["variant"] == v]
+        if not rs:
+            continue
+        med = {k: float(np.median([r[k] for r in rs])) for k in ("wall_s", "cpu_s", "linear_solve_s")}
+        mem = max(r["peak_rss_MB"] for r in rs)
+        rows.append(f"| this machine, {v} (median of {len(rs)}) | {med['wall_s']:.1f} s | {med['cpu_s']:.1f} s | "
+                    f"{med['linear_solve_s']:.1f} s | {rs[0]['newton_iterations']} | {mem:.0f} MB |")
+    return "\n".join(rows)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--one", nargs=3, metavar=("VARIANT", "MESH", "U_OUT"))
+    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--write-docs", action="store_true")
+    ap.add_argument("--from-json", action="store_true", help="only rewrite docs/bench.md from the last results")
+    a = ap.parse_args()
+    if a.one:
+        print(json.dumps(run_one(*a.one)))
+        return
+    if a.from_json:
+        write_docs(table(json.loads((HERE / "results" / "bench_fe_needle.json").read_text())["runs"]))
+        return
+    variants = a.variants.split(",")
+    with tempfile.TemporaryDirectory() as tmp:
+        msh = Path(tmp) / "needle1.msh"
+        make_mesh(msh)
+        runs, fields = [], {}
+        # alternate the variants (A B A B): a drift of the shared machine's load hits both
+        peak_note = "peak memory: ru_maxrss of each run's own process (imports, mesh read, solve)"
+        for rep in range(a.repeat):
+            for v in variants:
+                u_out = str(Path(tmp) / f"u_{v}.npy")
+                r = child(v, str(msh), u_out)
+                fields[v] = np.load(u_out)
+                runs.append(r)
+                print(f"{v:9s} wall {r['wall_s']:6.1f} s  cpu {r['cpu_s']:6.1f} s  linear {r['linear_solve_s']:6.1f} s  "
+                      f"Newton {r['newton_iterations']} {r['iterations_per_force']}  peak {r['peak_rss_MB']} MB",
+                      flush=True)
+    ref = fields.get("previous")
+    diff = {v: float(np.abs(u - ref).max() / np.abs(ref).max()) for v, u in fields.items()} if ref is not None else {}
+    for v, d in diff.items():
+        print(f"field {v} vs previous: max |du| / max |u| = {d:.2e}")
+    md = table(runs)
+    print(md)
+    res = {"runs": runs, "field_difference_vs_previous": diff, "table_md": md, "note": peak_note}
+    (HERE / "results").mkdir(exist_ok=True)
+    (HERE / "results" / "bench_fe_needle.json").write_text(json.dumps(res, indent=1))
+    if a.write_docs:
+        write_docs(md)
+
+
+def write_docs(md: str):
+    doc = ROOT / "docs" / "bench.md"
+    text = doc.read_text()
+    start, end = "<!-- bench_fe_needle:start -->", "<!-- bench_fe_needle:end -->"
+    i, j = text.index(start) + len(start), text.index(end)
+    doc.write_text(text[:i] + "\n" + md + "\n" + text[j:])
+
+
+if __name__ == "__main__":
+    main()
