@@ -68,6 +68,10 @@ def mesh_fidelity(seg, mesh, config) -> MeshFidelity:
     for n, ids in mesh.regions.items():
         nv = int(np.count_nonzero(arr == seg.tissues[n]))
         volume_error[n] = float(vol[ids].sum() / (nv * vox) - 1.0) if nv else float("inf")
+    bones_present = [n for n in BONE if n in mesh.regions]
+    if len(bones_present) > 1:   # the outer bone surface is the interface; the split inside is a rule
+        nv = int(np.count_nonzero(np.isin(arr, [seg.tissues[n] for n in bones_present])))
+        volume_error["bone"] = float(sum(vol[mesh.regions[n]].sum() for n in bones_present) / (nv * vox) - 1.0)
     # voxelise the mesh: region tag (1-based, 0 outside) at every voxel centre
     tag = np.zeros(len(mesh.cells), np.int32)
     ids_of = {}
