@@ -151,3 +151,4 @@ def test_mesh_command_smooth_method(tmp_path, monkeypatch, capsys):
     code, _, err = _cli(monkeypatch, capsys, "mesh", tmp_path / "seg", "--out", tmp_path / "m2",
                         "--method", "marching")
     assert code == 2 and "method" in err and "Traceback" not in err
+

@@ -200,18 +200,30 @@ def smooth_interfaces(arr: np.ndarray, spacing, *, iterations: int = 16, scale: 
     x1 = np.asarray(sm.points, float)
     faces = np.asarray(sm.regular_faces, np.int64)
     bl = np.asarray(sm.cell_data["boundary_labels"]).astype(np.int64)
-    keep = bl[:, 0] != bl[:, 1]
+    # where a tissue touches itself at a voxel corner, surface nets emits coincident points (a pinch);
+    # smoothed apart they open a hole in the interface. Merge them and keep them at the corner.
+    _, first, rep = np.unique(np.round(x0 / sp, 6), axis=0, return_index=True, return_inverse=True)
+    canon = first[rep.ravel()]
+    pinch = canon != np.arange(len(x0))
+    faces = canon[faces]
+    keep = (bl[:, 0] != bl[:, 1]) & (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) \
+        & (faces[:, 0] != faces[:, 2])
     faces, bl = faces[keep], bl[keep]
+    pinched = np.zeros(len(x0), bool)
+    pinched[canon[pinch]] = True
+    used, inv = np.unique(faces, return_inverse=True)     # drop the merged duplicates
+    faces = inv.reshape(faces.shape)
+    x0, x1, pinched = x0[used], x1[used], pinched[used]
     edges = unique_edges(faces)
     # vertices on the image / crop border planes stay put: the cut faces stay flat and its corners sharp
     idx = x0 / sp
     top = np.asarray(arr.shape[::-1], float) - 0.5
     on_border = np.any(np.isclose(idx, -0.5) | np.isclose(idx, top), axis=1)
-    w = np.where(on_border, 0.0, 1.0)
+    w = np.where(on_border | pinched, 0.0, 1.0)
     vol0 = label_volumes(x0, faces, bl)   # = the voxel volumes (raw faces are voxel faces)
     vol_s = label_volumes(x1, faces, bl)
     if restore and iterations > 0:
-        x1 = restore_volumes(x1, faces, bl, vol0, on_border)
+        x1 = restore_volumes(x1, faces, bl, vol0, on_border | pinched)
     vol_r = label_volumes(x1, faces, bl)
     history = []
     for _ in range(max_repair):
@@ -229,12 +241,20 @@ def smooth_interfaces(arr: np.ndarray, spacing, *, iterations: int = 16, scale: 
         x = x0 + w[:, None] * (x1 - x0)
         if len(edge_face_crossings(x, faces, edges)[0]):
             raise InputError("labels", "smoothed interfaces still intersect after repair")
+    open_edges = 0
+    for lab in np.unique(bl):
+        fl = faces[(bl[:, 0] == lab) | (bl[:, 1] == lab)]
+        e = np.sort(np.concatenate([fl[:, [0, 1]], fl[:, [1, 2]], fl[:, [2, 0]]]), axis=1)
+        open_edges += int(np.count_nonzero(np.unique(e, axis=0, return_counts=True)[1] % 2))
+    if open_edges:   # a tissue whose interfaces do not close would merge with its neighbour in TetGen
+        raise InputError("labels", f"smoothed interfaces leave {open_edges} open edge(s)")
     moved = np.linalg.norm(x - x0, axis=1)
     present = np.flatnonzero(vol0[1:] > 0) + 1
     rel = lambda v: {int(k): float(v[k] / vol0[k] - 1) for k in present}  # noqa: E731
     vol_f = label_volumes(x, faces, bl)
     info = {"voxels_changed_edge_contacts": n_fixed, "n_points": int(len(x)), "n_triangles": int(len(faces)),
-            "crossings_per_repair_pass": history, "border_vertices_fixed": int(on_border.sum()), "vertices_pulled_back": int(np.count_nonzero(w < 1)),
+            "crossings_per_repair_pass": history, "border_vertices_fixed": int(on_border.sum()),
+            "pinch_points_merged": int(pinch.sum()), "vertices_pulled_back": int(np.count_nonzero(w < 1)),
             "volume_change_smoothed": rel(vol_s), "volume_change_restored": rel(vol_r),
             "volume_change_final": rel(vol_f), "max_move_mm": float(moved.max()), "mean_move_mm": float(moved.mean())}
     return InterfaceSurfaces(points=x, faces=faces, boundary_labels=bl, info=info)
