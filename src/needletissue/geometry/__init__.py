@@ -3,6 +3,7 @@ offset layers around bone surfaces, extra solids (needles, clamp) in the label m
 
     from needletissue.geometry import surfaces, tet_mesh, thickness_along
     mesh = tet_mesh(seg, size=3.0); mesh.write_msh("model.msh")   # named physical volumes per tissue
+    mesh = tet_mesh(seg, size=3.0, method="smooth")               # smooth shared tissue interfaces
 
 See docs/imaging.md.
 """
@@ -12,6 +13,7 @@ _EXPORTS = {
     "MeshConfig": "tetmesh", "TetMesh": "tetmesh", "thickness_along": "thickness",
     "site_thickness": "thickness", "from_surfaces": "ssm", "mean_pelvis": "ssm", "LayerConfig": "ssm",
     "resample": "solids", "paint_cylinder": "solids", "paint_box": "solids",
+    "smooth_tet_mesh": "smooth", "smooth_interfaces": "smooth", "mesh_fidelity": "fidelity",
 }
 
 

@@ -35,11 +35,18 @@ class MeshConfig:
     crop: tuple[float, ...] | None = None  # (xmin, xmax, ymin, ymax, zmin, zmax) LPS mm
     coarsen: bool = True                   # block-majority coarsening of voxels finer than size
     max_volume: float | None = None        # mm^3; None: bound only when size < voxel spacing
+    method: str = "voxel"                  # "voxel": voxel-face interfaces; "smooth": geometry.smooth
+    smoothing_iterations: int = 16         # smooth: surface-nets constrained smoothing passes
+    smoothing_scale: float = 0.3           # smooth: max vertex move / voxel diagonal (1 = VTK default)
 
     def validate(self) -> "MeshConfig":
         check_number("size", self.size, gt=0.2, le=50)
         check_number("min_dihedral", self.min_dihedral, ge=0, lt=30)
         check_number("max_radius_edge", self.max_radius_edge, ge=1.1, le=10)
+        if self.method not in ("voxel", "smooth"):
+            raise InputError("method", f"unknown meshing method {self.method!r}; known: voxel, smooth")
+        check_number("smoothing_iterations", self.smoothing_iterations, ge=0, le=500)
+        check_number("smoothing_scale", self.smoothing_scale, ge=0, le=2)
         if self.max_volume is not None:
             check_number("max_volume", self.max_volume, gt=0)
         if self.crop is not None:
@@ -105,6 +112,7 @@ class TetMesh:
     regions: dict[str, np.ndarray]
     surfaces: dict[str, np.ndarray] = field(default_factory=dict)
     materials: dict[str, str] = field(default_factory=dict)   # region -> material name
+    info: dict = field(default_factory=dict)                  # how it was built (method, timings)
 
     def quality(self) -> QualityReport:
         q = tet_quality(self.points, self.cells)
@@ -230,6 +238,27 @@ def _crop_and_coarsen(seg, cfg: MeshConfig):
     return arr, start, f, names
 
 
+def _sub_image(seg, arr, start, f):
+    """The (cropped, coarsened) label array as an image with its own origin in the physical frame."""
+    import SimpleITK as sitk
+
+    sub = sitk.GetImageFromArray(arr)
+    sub.SetSpacing(tuple(np.asarray(seg.labels.GetSpacing(), float) * f))
+    sub.SetDirection(seg.labels.GetDirection())
+    # centre of the first coarse voxel: block of f voxels starting at `start`
+    first_centre = np.asarray(start, float) + (f - 1) / 2.0
+    sub.SetOrigin(seg.labels.TransformContinuousIndexToPhysicalPoint(first_centre.tolist()))
+    return sub
+
+
+def _grid_frame(seg, arr, start, f):
+    """Spacing (x, y, z) of the meshed grid and the map grid coordinates (index * spacing) -> LPS mm."""
+    from needletissue.geometry.surfaces import image_to_pyvista
+
+    _, to_phys = image_to_pyvista(_sub_image(seg, arr, start, f), arr)
+    return np.asarray(seg.labels.GetSpacing(), float) * f, to_phys
+
+
 def tet_mesh(seg, size: float = 3.0, config: MeshConfig | None = None, **kw) -> TetMesh:
     """Conforming multi-region tetrahedral mesh of a Segmentation (tissues -> named regions).
 
@@ -239,7 +268,6 @@ def tet_mesh(seg, size: float = 3.0, config: MeshConfig | None = None, **kw) -> 
     by that of a regular tetrahedron of edge `size` (mean edge then about 0.9 `size`). Extra solids
     (needles, clamp) enter by painting their label into the label map first (geometry.solids).
     """
-    import SimpleITK as sitk
     import tetgen
 
     from needletissue.geometry.surfaces import image_to_pyvista, label_boundaries
@@ -247,16 +275,13 @@ def tet_mesh(seg, size: float = 3.0, config: MeshConfig | None = None, **kw) -> 
 
     cfg = config or MeshConfig(size=size, **kw)
     cfg.validate()
+    if cfg.method == "smooth":
+        from needletissue.geometry.smooth import smooth_tet_mesh
+
+        return smooth_tet_mesh(seg, cfg)
     arr, start, f, names = _crop_and_coarsen(seg, cfg)
-    sp = np.asarray(seg.labels.GetSpacing(), float) * f
-    # sub-image with its own origin so that image_to_pyvista maps to the right physical place
-    sub = sitk.GetImageFromArray(arr)
-    sub.SetSpacing(tuple(sp))
-    sub.SetDirection(seg.labels.GetDirection())
-    # centre of the first coarse voxel: block of f voxels starting at `start`
-    first_centre = np.asarray(start, float) + (f - 1) / 2.0
-    sub.SetOrigin(seg.labels.TransformContinuousIndexToPhysicalPoint(first_centre.tolist()))
-    grid, to_phys = image_to_pyvista(sub, arr)
+    sp, to_phys = _grid_frame(seg, arr, start, f)
+    grid, _ = image_to_pyvista(_sub_image(seg, arr, start, f), arr)
     plc = label_boundaries(grid)
     if plc.n_cells == 0:
         raise InputError("regions", "no interface to mesh")
@@ -314,6 +339,21 @@ def bone_surfaces_by_bone(mesh: TetMesh, bones_img, depth: float) -> dict[str, n
     arr = sitk.GetArrayViewFromImage(bones_img)
     bid = np.asarray(arr)[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
     return {f"bone_surface_{name}": faces[bid == i] for name, i in BONE_IDS.items() if np.any(bid == i)}
+
+
+def face_pairs(cells: np.ndarray, tag: np.ndarray):
+    """Faces of positive tetrahedra: (ids of faces between different tags, ids of free faces, faces).
+
+    Face k belongs to cell k % len(cells); an interface face is listed once, oriented out of one owner."""
+    loc = [(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)]
+    faces = np.concatenate([cells[:, f] for f in loc])
+    owner = np.tile(np.arange(len(cells)), 4)
+    _, inv, cnt = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    order = np.argsort(inv, kind="stable")
+    pair = order[cnt[inv[order]] == 2].reshape(-1, 2)
+    inter = pair[tag[owner[pair[:, 0]]] != tag[owner[pair[:, 1]]], 0]
+    return inter, np.flatnonzero(cnt[inv] == 1), faces
 
 
 def interface_surfaces(mesh: TetMesh) -> dict[str, np.ndarray]:
