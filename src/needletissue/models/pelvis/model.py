@@ -156,6 +156,7 @@ class LoadResult:
     newton_iterations: int
     reactions_N: dict = field(default_factory=dict)
     vtu: str | None = None
+    strength: dict = field(default_factory=dict)  # models.strength.strength_check: utilisations, warnings
 
 
 @dataclass
@@ -328,6 +329,8 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
     out_dir = Path(config.out) if config.out else None
     loads = []
     gripper_nodes = np.unique(qm.surfaces["gripper"])  # |mean u| over the gripper, as `fe needle`
+    from needletissue.models.strength import strength_check
+
     for f, r, rt in zip(config.forces, fe, ritz_tip):
         by = {k: float(v) for k, v in r.max_displacement_by_region.items()}
         needles = {k: by[k] for k in ("needle_1", "needle_2")}
@@ -338,7 +341,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
             vtu = str(r.write_vtu(out_dir / f"pelvis_{int(round(f))}N.vtu"))
         loads.append(LoadResult(f, nmax, clamp_u, by, rt, None if rt is None else abs(rt - nmax), needles,
                                 r.newton_iterations, {k: np.asarray(v).tolist() for k, v in r.reaction_forces.items()},
-                                vtu))
+                                vtu, strength_check(r, MATERIALS)))
     from needletissue.geometry.pelvis import SOFT_TISSUES
 
     last = loads[-1].max_deformation_mm
