@@ -144,7 +144,8 @@ def test_json_reports_clamp_motion_and_strength(cli_run):
         assert r["moment_Nmm"] == pytest.approx([0.0, 0.0, 0.0])
         assert r["clamp_fit"]["rms_residual_mm"] < 1e-2 * r["clamp_displacement_mm"]  # the steel clamp is rigid
         s1, s2 = (np.array(r["root_slope"][k]) for k in ("needle_1", "needle_2"))
-        assert s1[1] > 0 and s1 == pytest.approx(s2, rel=2e-2)
+        assert s1[1] > 0 and s1[1] == pytest.approx(s2[1], rel=2e-2)   # y load: y slopes, alike
+        assert abs(s1[0]) < 1e-2 * s1[1] and abs(s2[0]) < 1e-2 * s2[1]
         vm = r["max_von_mises_MPa"]
         assert r["needle_yield_utilisation"] == pytest.approx(
             max(vm["needle_1"], vm["needle_2"]) / get("needle").strength)
