@@ -24,7 +24,10 @@ import numpy as np
 import pandas as pd
 
 HERE = Path(__file__).resolve().parent
-STUDIES = sorted((HERE / "studies").glob("*.toml"), key=lambda p: (not p.stem.startswith("r"), p.stem))  # r1, r2 first
+# Submission (= priority) order: the reference configs, then the load classes that have no FE result
+# elsewhere in the project (in-plane, moment), the across cases last.
+ORDER = ("r1", "r2", "c", "d", "e", "b", "a")
+STUDIES = sorted((HERE / "studies").glob("*.toml"), key=lambda p: ORDER.index(p.stem.split("_")[0]))
 RUNS = HERE / "runs"
 GROUPS = {p.stem: p.stem.split("_")[0] for p in STUDIES}
 
@@ -166,16 +169,38 @@ def export() -> dict:
     write_atomic(HERE / "fe_sweep_curves.json", json.dumps(curves).encode())
     if rows:
         write_atomic(HERE / "fe_sweep.csv", pd.DataFrame([_flat(r) for r in rows]).to_csv(index=False).encode())
+    for name in ("fe_sweep.json", "fe_sweep_curves.json", "fe_sweep.csv"):
+        if (HERE / name).exists():
+            (HERE / name).chmod(0o644)   # the atomic temp file is private; the data is for everyone
     return {"configs": payload["configs"], "points": len(rows), "failed": len(failed)}
+
+
+def summary() -> str:
+    """Markdown tables of the exported data (pasted into README.md)."""
+    df = pd.read_csv(HERE / "fe_sweep.csv")
+    lines = ["| group | configs | points | max needle deformation at 300 N (mm) | clamp at 300 N (mm) | "
+             "needle yield utilisation at 300 N | bone strength utilisation at 300 N | case wall (s) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for grp, d in df.groupby("group", sort=False):
+        top = d[d["force_N"] == d["force_N"].max()]
+        rng = lambda c: f"{top[c].min():.3g}-{top[c].max():.3g}" if len(top) > 1 else f"{top[c].iloc[0]:.3g}"
+        lines.append(f"| {grp} | {d['config_id'].nunique()} | {len(d)} | {rng('max_needle_deformation_mm')} | "
+                     f"{rng('clamp_displacement_mm')} | {rng('needle_yield_utilisation')} | "
+                     f"{rng('bone_strength_utilisation')} | {d.groupby('config_id')['case_wall_time_s'].first().median():.0f} |")
+    return "\n".join(lines)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--export-only", action="store_true")
+    ap.add_argument("--summary", action="store_true", help="print the README's result tables")
     ap.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--only", nargs="*", help="study names (file stems) to run, default all")
     a = ap.parse_args()
+    if a.summary:
+        print(summary())
+        return
     if a.export_only:
         print(export())
         return
