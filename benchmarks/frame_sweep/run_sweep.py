@@ -187,6 +187,24 @@ def summary() -> str:
         lines.append(f"| {grp} | {d['config_id'].nunique()} | {len(d)} | {rng('max_needle_deformation_mm')} | "
                      f"{rng('clamp_displacement_mm')} | {rng('needle_yield_utilisation')} | "
                      f"{rng('bone_strength_utilisation')} | {d.groupby('config_id')['case_wall_time_s'].first().median():.0f} |")
+    # force at which a utilisation reaches 1, per config (linear interpolation along the load path)
+    def onset(d, col):
+        f, u = d["force_N"].to_numpy(), d[col].to_numpy()
+        if u.max() < 1:
+            return math.inf
+        if u[0] >= 1:
+            return f[0] * 1 / u[0]   # ~ linear from zero: below the first force
+        return float(np.interp(1.0, u, f))
+
+    lines += ["", "| group | configs | needle yields at (N): min / median / max | cortical bone strength reached at (N) | "
+              "cancellous bone strength reached at (N) |", "|---|---|---|---|---|"]
+    for grp, d in df.groupby("group", sort=False):
+        cells = []
+        for col in ("needle_yield_utilisation", "cortical_strength_utilisation", "cancellous_strength_utilisation"):
+            v = np.array([onset(c, col) for _, c in d.groupby("config_id")])
+            txt = lambda x: "> 300" if math.isinf(x) else f"{x:.0f}"
+            cells.append(f"{txt(v.min())} / {txt(np.median(v))} / {txt(v.max())}")
+        lines.append(f"| {grp} | {d['config_id'].nunique()} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
