@@ -130,6 +130,9 @@ def test_bad_cli_input_is_one_line_exit_2():
     p = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", "fe", "needle",
                         "--force", "-100"], capture_output=True, text=True)
     assert p.returncode == 2 and "forces" in p.stderr
+    p = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", "fe", "needle",
+                        "--load-offset", "1,2"], capture_output=True, text=True)
+    assert p.returncode == 2 and "--load-offset" in p.stderr
 
 
 def test_json_reports_clamp_motion_and_strength(cli_run):
