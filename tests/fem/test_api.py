@@ -81,3 +81,24 @@ def test_reactions_of_supports_sharing_nodes_sum_to_minus_the_load(two_layers):
         np.testing.assert_allclose(total, -F, atol=1e-6 * np.abs(F).max())
         assert np.abs(r.reaction_forces["zmin"]).max() > 0.1 * np.abs(F).max()  # both supports carry load
         assert np.abs(r.reaction_forces["xmin"]).max() > 0.1 * np.abs(F).max()
+
+
+@pytest.mark.parametrize("quadratic", [False, True])
+def test_surface_moment_is_an_exact_self_equilibrated_couple(quadratic):
+    """SurfaceForce.moment: nodal forces linear in position whose sum is zero and whose moment about
+    the area centroid is the given moment, on linear and quadratic faces, any direction."""
+    from needletissue.fem.solve import _couple
+
+    mesh = TaggedMesh.box((10, 6, 8), (3, 2, 4))
+    if quadratic:
+        mesh = mesh.to_quadratic()
+    for surface in ("zmax", "xmin"):
+        nodes, w = mesh.nodal_area_weights(surface)
+        x = mesh.points[nodes]
+        M = np.array([120.0, -45.0, 300.0])
+        f = _couple(x, w, SurfaceForce(surface, moment=tuple(M)))
+        c = (w @ x) / w.sum()
+        np.testing.assert_allclose(f.sum(axis=0), 0.0, atol=1e-10)
+        np.testing.assert_allclose(np.cross(x - c, f).sum(axis=0), M, rtol=1e-12)
+    with pytest.raises(InputError, match="moment"):
+        _couple(x, w, SurfaceForce("zmax", moment=(1.0, 2.0)))

@@ -159,3 +159,29 @@ def test_written_config_is_accepted_back(cli_run, monkeypatch):
     assert isinstance(res.exception, Stop)
     assert seen[-1].geometry.mesh_size == 9.0 and seen[-1].forces == (5.0,)
     assert seen[-1].geometry.needle_mesh_size == COARSE["needle_mesh_size"]  # from the file, not the default
+    p = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", "fe", "needle",
+                        "--load-offset", "1,2"], capture_output=True, text=True)
+    assert p.returncode == 2 and "--load-offset" in p.stderr
+
+
+def test_json_reports_clamp_motion_and_strength(cli_run):
+    """Fields for reduced-order models and the elastic-validity check (issue 14): the clamp vector's
+    norm is the existing clamp_displacement_mm, the utilisation is max von Mises / the registry's
+    strength and scales linearly with the small force, the symmetric needles have equal root slopes."""
+    data, _ = cli_run
+    a, b = data["results"]
+    for r in (a, b):
+        assert np.linalg.norm(r["clamp_displacement_vector_mm"]) == pytest.approx(r["clamp_displacement_mm"])
+        assert r["force_vector_N"] == pytest.approx([0.0, r["force_N"], 0.0])
+        assert r["moment_Nmm"] == pytest.approx([0.0, 0.0, 0.0])
+        assert r["clamp_fit"]["rms_residual_mm"] < 1e-2 * r["clamp_displacement_mm"]  # the steel clamp is rigid
+        s1, s2 = (np.array(r["root_slope"][k]) for k in ("needle_1", "needle_2"))
+        assert s1[1] > 0 and s1[1] == pytest.approx(s2[1], rel=2e-2)   # y load: y slopes, alike
+        assert abs(s1[0]) < 1e-2 * s1[1] and abs(s2[0]) < 1e-2 * s2[1]
+        vm = r["max_von_mises_MPa"]
+        assert r["needle_yield_utilisation"] == pytest.approx(
+            max(vm["needle_1"], vm["needle_2"]) / get("needle").strength)
+        assert r["bone_strength_utilisation"] == pytest.approx(max(
+            vm["cortical_bone"] / get("cortical_bone").strength, vm["cancellous_bone"] / get("cancellous_bone").strength))
+        assert r["validity_warnings"] == []  # 10-20 N: far below yield
+    assert b["needle_yield_utilisation"] == pytest.approx(2 * a["needle_yield_utilisation"], rel=0.02)

@@ -42,6 +42,9 @@ def register(app: typer.Typer, groups) -> None:
         direction: str = typer.Option("0,1,0", "--direction",
                                       help="Force direction x,y,z (normalised; default y: lateral, "
                                            "perpendicular to the needles and their plane)."),
+        load_offset: str = typer.Option("0,0,0", "--load-offset",
+                                        help="Load point minus the gripper centre x,y,z, mm: the force acts "
+                                             "there (applied as force + moment r x F at the centre)."),
         order: int = typer.Option(2, "--order", help="Element order: 2 (quadratic, default) or 1."),
         no_ritz: bool = typer.Option(False, "--no-ritz", help="Skip the Rayleigh-Ritz comparison."),
         out: Optional[Path] = typer.Option(None, "--out", help="Output folder: mesh, VTU per force, "
@@ -87,6 +90,14 @@ def register(app: typer.Typer, groups) -> None:
             if len(dvec) != 3:
                 raise InputError("--direction", f"expected three numbers x,y,z, got {direction!r}")
             changes["direction"] = dvec
+        if "load_offset" in given:
+            try:
+                offset = tuple(float(x) for x in load_offset.split(","))
+            except ValueError:
+                raise InputError("--load-offset", f"expected three numbers x,y,z (mm), got {load_offset!r}") from None
+            if len(offset) != 3:
+                raise InputError("--load-offset", f"expected three numbers x,y,z (mm), got {load_offset!r}")
+            changes["load_offset"] = offset
         geometry = replace(base.geometry, **{n: p[n] for n in _GEOMETRY_OPTIONS if n in given})
         if force:
             changes["forces"] = tuple(force)
@@ -164,6 +175,13 @@ def _table(result, out) -> None:
                   f(r.ritz_tip_deflection_mm), f(r.theory_fe_difference_mm))
     c = Console()
     c.print(t)
+    for r in result.results:
+        st = r.strength
+        if st:
+            c.print(f"{r.force_N:g} N: needle yield utilisation {st['needle_yield_utilisation']:.2f}, "
+                    f"bone strength utilisation {st['bone_strength_utilisation']:.2f} (max von Mises / strength)")
+        for w in st.get("validity_warnings", []):
+            c.print(f"[yellow]warning[/yellow] {r.force_N:g} N: {w}")
     for row in result.extra.get("contact", {}).get("per_force", []):
         gaps = ", ".join(f"{k} {v:.3f}" for k, v in row["max_gap_opening_mm"].items())
         c.print(f"{row['force_N']:g} N contact: largest gap opening mm: {gaps}; "

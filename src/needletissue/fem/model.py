@@ -38,10 +38,17 @@ class PrescribedDisplacement:
 @dataclass(frozen=True)
 class SurfaceForce:
     """A total force (Fx, Fy, Fz) in N spread uniformly over the reference area of a surface
-    (a dead load: fixed direction and distribution), scaled by the load factor."""
+    (a dead load: fixed direction and distribution), scaled by the load factor.
+
+    `moment` (Mx, My, Mz) in N mm about the surface's area centroid adds a self-equilibrated
+    traction that varies linearly over the surface, t = omega x r (r from the centroid), with omega
+    chosen so that the nodal forces' moment is exactly `moment` and their sum stays `total`: force
+    and moment together are any wrench at the centroid (a force at an offset point: moment = r x F).
+    """
 
     surface: str
     total: tuple = (0.0, 0.0, 0.0)
+    moment: tuple = (0.0, 0.0, 0.0)
 
 
 BoundaryCondition = Fixed | PrescribedDisplacement | SurfaceForce

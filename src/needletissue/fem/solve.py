@@ -49,6 +49,7 @@ class _Loads:
                 mesh.surface_nodes(bc.surface)  # InputError naming the known surfaces
                 nodes, w = mesh.nodal_area_weights(bc.surface)
                 values = w[:, None] / w.sum() * total[None, :]
+                values += _couple(mesh.points[nodes], w, bc)
                 self.loads.append((fem.PointLoad(model.field, nodes, np.zeros_like(values)), values))
                 continue
             else:
@@ -83,6 +84,20 @@ class _Loads:
         for load, v in self.loads:
             load.update(lam * v)
         return fem.dof.apply(model.field, self.fboundaries, self.dof0)
+
+
+def _couple(x: np.ndarray, w: np.ndarray, bc: SurfaceForce) -> np.ndarray:
+    """Nodal forces w_i (omega x r_i), r_i from the weighted centroid: they sum to zero and their
+    moment sum w_i r_i x (omega x r_i) = J omega equals bc.moment (J: the surface's polar tensor)."""
+    if len(bc.moment) != 3:
+        raise InputError(f"SurfaceForce({bc.surface!r}).moment", "needs 3 components (N mm)")
+    m = np.array([check_number(f"SurfaceForce({bc.surface!r}).moment[{c}]", v) for c, v in enumerate(bc.moment)])
+    if not m.any():
+        return np.zeros_like(x)
+    r = x - (w @ x) / w.sum()
+    rr = np.einsum("i,ij,ik->jk", w, r, r)
+    omega = np.linalg.solve(np.trace(rr) * np.eye(3) - rr, m)
+    return w[:, None] * np.cross(omega, r)
 
 
 class _Progress:

@@ -40,8 +40,14 @@ class Material:
     density: float = 1.0  # g/cm^3
     source: str = ""
     bulk_modulus: float | None = None  # MPa; None -> documented default
+    # Stress (MPa) beyond which the elastic law stops describing the material: yield for metals,
+    # strength for bone; compared with the FE's von Mises stress. None: not defined (soft tissue).
+    strength: float | None = None
+    strength_source: str = ""
 
     def __post_init__(self):
+        if self.strength is not None:
+            check_number(f"{self.name}.strength", self.strength, gt=0)
         if self.model not in MODELS:
             raise InputError(f"{self.name}.model", f"unknown model {self.model!r}; known: {', '.join(MODELS)}")
         check_number(f"{self.name}.density", self.density, gt=0)
@@ -146,12 +152,25 @@ _BUILTIN = {
             "adipose", "ogden", dict(mu=[1.1667e-3], alpha=[16.2]), density=0.92,
             source="Paper Sec. 1.2.2 (Al-Dirini et al., its Ref. [14]); W = 2mu/alpha^2 convention (Eq. 7)",
         ),
-        Material("cortical_bone", "elastic", dict(E=17000.0, nu=0.30), density=2.00, source="Paper Table 2"),
-        Material("cancellous_bone", "elastic", dict(E=150.0, nu=0.20), density=2.00, source="Paper Table 2"),
+        Material("cortical_bone", "elastic", dict(E=17000.0, nu=0.30), density=2.00, source="Paper Table 2",
+                 strength=133.0,
+                 strength_source="ultimate tensile strength of human femoral cortical bone, longitudinal "
+                                 "(Reilly & Burstein 1975, J Biomech 8:393; compressive 193 MPa): the lower, "
+                                 "tensile value, compared with von Mises"),
+        Material("cancellous_bone", "elastic", dict(E=150.0, nu=0.20), density=2.00, source="Paper Table 2",
+                 strength=0.93,
+                 strength_source="tensile yield strain 0.62 % of human trabecular bone (Morgan & Keaveny "
+                                 "2001, J Biomech 34:569; compressive 0.70 %) x this model's E = 150 MPa"),
         Material("needle", "elastic", dict(E=110000.0, nu=0.30), density=2.77,
-                 source="Paper Table 2 (titanium alloy bone needle)"),
+                 source="Paper Table 2 (titanium alloy bone needle)",
+                 strength=880.0,
+                 strength_source="tensile yield (0.2 % proof) of annealed Ti-6Al-4V, Grade 5 (ASM Aerospace "
+                                 "Specification Metals data sheet; ASTM F136 ELI implant grade: >= 795 MPa)"),
         Material("clamp", "elastic", dict(E=200000.0, nu=0.30), density=7.85,
-                 source="Paper Table 2 (structural steel clamper)"),
+                 source="Paper Table 2 (structural steel clamper)",
+                 strength=250.0,
+                 strength_source="tensile yield of structural steel (ANSYS Engineering Data 'Structural "
+                                 "Steel', the paper's material library)"),
     )
 }
 _USER: dict[str, Material] = {}
@@ -191,7 +210,8 @@ def load_toml(path: str | Path) -> list[Material]:
     for name, table in data.items():
         if not isinstance(table, dict) or "model" not in table:
             raise InputError(f"{path}:{name}", "each material is a table with at least 'model' and 'parameters'")
-        unknown = set(table) - {"model", "parameters", "density", "source", "bulk_modulus"}
+        unknown = set(table) - {"model", "parameters", "density", "source", "bulk_modulus", "strength",
+                                "strength_source"}
         if unknown:
             raise InputError(f"{path}:{name}", f"unknown fields {sorted(unknown)}")
         out.append(register(Material(name=name, **table)))

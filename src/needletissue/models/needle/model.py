@@ -4,7 +4,8 @@ Bonded interfaces (one conforming mesh); bone far faces (bottom and sides) fixed
 (the muscle and adipose sides) fixed, because the tissue continues there and is tethered to the pelvis
 (the far boundary is far enough that this choice changes the needle result by less than the mesh error,
 docs/needle_model.md); skin free. The reduction force is a dead load spread uniformly over the
-gripper faces of the clamp. Needle, clamp, bone: compressible Neo-Hooke from E, nu (paper Table 2);
+gripper faces of the clamp, optionally with a moment (`load_offset`: the force acts at an offset from
+the gripper centre, a statically equivalent force + moment r x F at the centre). Needle, clamp, bone: compressible Neo-Hooke from E, nu (paper Table 2);
 muscle MR5 and adipose Ogden nearly incompressible (P2/P0 mixed elements on quadratic tets).
 """
 
@@ -36,6 +37,8 @@ class NeedleModelConfig:
     forces: tuple[float, ...] = (100.0, 200.0, 300.0)   # N, solved as one load path
     direction: tuple[float, float, float] = (0.0, 1.0, 0.0)  # default lateral: perpendicular to the
     #                                                  needles and to their plane (y)
+    load_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)  # mm: load point - gripper centre; the
+    #                           FE applies F at the centre plus the moment load_offset x F (N mm)
     order: int = 2                                     # 2: quadratic tets (linear ones lock in bending)
     formulation: str = "mixed"                         # tissue P2/P0 (nearly incompressible)
     tissue_far: str = "fixed"                          # "fixed" | "free": muscle/adipose far faces
@@ -58,6 +61,19 @@ class NeedleModelConfig:
         if d.shape != (3,) or np.linalg.norm(d) == 0:
             raise InputError("direction", f"must be a non-zero 3-vector, got {self.direction!r}")
         object.__setattr__(self, "direction", tuple(float(x) for x in d / np.linalg.norm(d)))
+        r = [check_number("load_offset", v) for v in self.load_offset]
+        if len(r) != 3:
+            raise InputError("load_offset", f"must be a 3-vector (mm), got {self.load_offset!r}")
+        object.__setattr__(self, "load_offset", tuple(r))
+
+    @property
+    def load_point(self) -> np.ndarray:
+        """Where the force acts (mm): the gripper centre (0, 0, z3) plus load_offset."""
+        return np.array([0.0, 0.0, self.geometry.gripper_centre]) + np.asarray(self.load_offset)
+
+    def moment(self, force: float) -> np.ndarray:
+        """Moment (N mm) about the gripper centre of the force `force` (N) at the load point."""
+        return np.cross(np.asarray(self.load_offset), force * np.asarray(self.direction))
         if self.order not in (1, 2):
             raise InputError("order", f"must be 1 or 2, got {self.order!r}")
         if self.formulation not in ("displacement", "mixed"):
@@ -90,6 +106,16 @@ class NeedleLoadResult:
     ritz_force_per_needle_tip_deflection_mm: float | None = None
     fe: object = field(default=None, repr=False)   # the FEResult (displacements, stresses)
     ritz: tuple = field(default=(), repr=False)    # RitzResult at the full force and per needle
+    # the wrench and the clamp's rigid motion (for reduced-order models: issue 14)
+    force_vector_N: list = field(default_factory=list)
+    moment_Nmm: list = field(default_factory=list)              # about the gripper centre
+    load_point_mm: list = field(default_factory=list)
+    clamp_displacement_vector_mm: list = field(default_factory=list)   # mean u over the gripper nodes
+    clamp_rotation_rad: list = field(default_factory=list)      # rotation vector, rigid fit to the clamp
+    clamp_fit: dict = field(default_factory=dict)               # centre displacement, fit residual
+    root_slope: dict = field(default_factory=dict)              # needle -> [du_x/dz, du_y/dz] at z = 0
+    root_displacement_mm: dict = field(default_factory=dict)    # needle -> u at z = 0
+    strength: dict = field(default_factory=dict)                # models.strength.strength_check
 
     def to_dict(self) -> dict:
         return {
@@ -108,6 +134,15 @@ class NeedleLoadResult:
             if self.fe is not None else {},
             "deflection_curves": {k: {"z_mm": c.z_mm.tolist(), "deflection_mm": c.deflection_mm.tolist()}
                                   for k, c in self.curves.items()},
+            "force_vector_N": self.force_vector_N,
+            "moment_Nmm": self.moment_Nmm,
+            "load_point_mm": self.load_point_mm,
+            "clamp_displacement_vector_mm": self.clamp_displacement_vector_mm,
+            "clamp_rotation_rad": self.clamp_rotation_rad,
+            "clamp_fit": self.clamp_fit,
+            "root_slope": self.root_slope,
+            "root_displacement_mm": self.root_displacement_mm,
+            **self.strength,
         }
 
 
@@ -166,7 +201,8 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     bcs = [Fixed("bone_fixed")]
     if cfg.tissue_far == "fixed":
         bcs.append(Fixed("tissue_far"))
-    bcs.append(SurfaceForce("gripper", total=tuple(fmax * np.asarray(cfg.direction))))
+    bcs.append(SurfaceForce("gripper", total=tuple(fmax * np.asarray(cfg.direction)),
+                            moment=tuple(cfg.moment(fmax))))
     extra = tuple(items(model) if callable(items) else items)
     fe_results = solve(model, bcs, load_factors=[f / fmax for f in cfg.forces], solver=cfg.solver,
                        items=extra, progress=cfg.progress)
@@ -175,6 +211,10 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     used = model.mesh                         # tetra10 when order=2
     axes = _axis_nodes(used.points, g)
     gripper_nodes = used.surface_nodes("gripper")
+    clamp_nodes = np.unique(used.cells[used.regions["clamp"]])
+    centre = np.array([0.0, 0.0, g.gripper_centre])
+    from needletissue.models.strength import strength_check
+
     results = []
     for f, r in zip(cfg.forces, fe_results):
         u = r.displacement
@@ -188,6 +228,19 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
             max_deformation_mm={k: float(v) for k, v in r.max_displacement_by_region.items()},
             needle_end_deflection_mm={k: float(c.deflection_mm[-1]) for k, c in curves.items()},
             curves=curves, newton_iterations=r.newton_iterations, steps=r.steps, fe=r)
+        res.force_vector_N = (f * np.asarray(cfg.direction)).tolist()
+        res.moment_Nmm = cfg.moment(f).tolist()
+        res.load_point_mm = cfg.load_point.tolist()
+        res.clamp_displacement_vector_mm = u[gripper_nodes].mean(axis=0).tolist()
+        rot, centre_u, rms = rigid_fit(used.points[clamp_nodes], u[clamp_nodes], centre)
+        res.clamp_rotation_rad = rot.tolist()
+        res.clamp_fit = {"centre_mm": centre.tolist(), "centre_displacement_mm": centre_u.tolist(),
+                         "rms_residual_mm": rms, "nodes": int(len(clamp_nodes))}
+        for name, c in curves.items():
+            slope, u0 = root_slope(c.z_mm, c.displacement_mm, half_window=g.diameter)
+            res.root_slope[name] = slope.tolist()
+            res.root_displacement_mm[name] = u0.tolist()
+        res.strength = strength_check(r, {k: MATERIALS[k] for k in mesh.regions})
         if f in ritz:
             res.ritz_tip_deflection_mm = ritz[f]["full"]
             res.ritz_force_per_needle_tip_deflection_mm = ritz[f]["per_needle"]
@@ -220,6 +273,35 @@ def _axis_nodes(points: np.ndarray, g: NeedleGeometry) -> dict[str, tuple[np.nda
         idx = idx[np.argsort(points[idx, 2])]
         out[f"needle_{i + 1}"] = (idx, points[idx, 2].copy())
     return out
+
+
+def rigid_fit(x: np.ndarray, u: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Best rigid motion of points x (k, 3) displaced by u (least squares, Kabsch/SVD, finite
+    rotations): (rotation vector in rad, displacement of the point `centre` under that motion in mm,
+    rms distance of the points from the rigid motion in mm: how rigid the body moved)."""
+    from scipy.spatial.transform import Rotation
+
+    y = x + u
+    xm, ym = x.mean(axis=0), y.mean(axis=0)
+    h = (x - xm).T @ (y - ym)
+    a, _, bt = np.linalg.svd(h)
+    sign = np.sign(np.linalg.det(bt.T @ a.T))
+    rot = bt.T @ np.diag([1.0, 1.0, sign]) @ a.T
+    moved = (x - xm) @ rot.T + ym
+    rms = float(np.sqrt(np.mean(np.sum((moved - y) ** 2, axis=1))))
+    centre_u = rot @ (centre - xm) + ym - centre
+    return Rotation.from_matrix(rot).as_rotvec(), centre_u, rms
+
+
+def root_slope(z: np.ndarray, disp: np.ndarray, half_window: float) -> tuple[np.ndarray, np.ndarray]:
+    """Slope (du_x/dz, du_y/dz) and displacement u (3) of a needle axis at the bone surface z = 0,
+    from a cubic least-squares fit of the axis nodes within |z| <= half_window (mm); the slope and
+    the bending moment are continuous there, so one cubic spans the bone and the tissue side."""
+    near = np.abs(z) <= half_window
+    if near.sum() < 5:  # too coarse an axis for a cubic: no estimate rather than a wrong one
+        return np.full(2, np.nan), np.full(3, np.nan)
+    coef = np.polynomial.polynomial.polyfit(z[near], disp[near], 3)   # (4, 3)
+    return coef[1, :2].copy(), coef[0].copy()
 
 
 def ritz_model(g: NeedleGeometry):

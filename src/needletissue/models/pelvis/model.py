@@ -160,6 +160,7 @@ class LoadResult:
     vtu: str | None = None
     # per region: volume fraction beyond the tissue law's Drucker-stable range (fem FEResult.check_drucker)
     drucker_unstable_volume_fraction: dict = field(default_factory=dict)
+    strength: dict = field(default_factory=dict)  # models.strength.strength_check: utilisations, warnings
 
 
 @dataclass
@@ -332,6 +333,8 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
     out_dir = Path(config.out).absolute() if config.out else None  # files store paths relative to it
     loads = []
     gripper_nodes = np.unique(qm.surfaces["gripper"])  # |mean u| over the gripper, as `fe needle`
+    from needletissue.models.strength import strength_check
+
     for f, r, rt in zip(config.forces, fe, ritz_tip):
         by = {k: float(v) for k, v in r.max_displacement_by_region.items()}
         needles = {k: by[k] for k in ("needle_1", "needle_2")}
@@ -342,7 +345,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
             vtu = str(r.write_vtu(out_dir / f"pelvis_{int(round(f))}N.vtu", frame=FRAME, force_N=f))
         loads.append(LoadResult(f, nmax, clamp_u, by, rt, None if rt is None else abs(rt - nmax), needles,
                                 r.newton_iterations, {k: np.asarray(v).tolist() for k, v in r.reaction_forces.items()},
-                                vtu, dict(r.drucker_unstable_fraction)))
+                                vtu, dict(r.drucker_unstable_fraction), strength_check(r, MATERIALS)))
     from needletissue.geometry.pelvis import SOFT_TISSUES
 
     last = loads[-1].max_deformation_mm
