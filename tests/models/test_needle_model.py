@@ -130,6 +130,9 @@ def test_bad_cli_input_is_one_line_exit_2():
     p = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", "fe", "needle",
                         "--force", "-100"], capture_output=True, text=True)
     assert p.returncode == 2 and "forces" in p.stderr
+    p = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", "fe", "needle",
+                        "--load-offset", "1,2"], capture_output=True, text=True)
+    assert p.returncode == 2 and "--load-offset" in p.stderr
 
 
 def test_written_config_is_accepted_back(cli_run, monkeypatch):
@@ -159,9 +162,6 @@ def test_written_config_is_accepted_back(cli_run, monkeypatch):
     assert isinstance(res.exception, Stop)
     assert seen[-1].geometry.mesh_size == 9.0 and seen[-1].forces == (5.0,)
     assert seen[-1].geometry.needle_mesh_size == COARSE["needle_mesh_size"]  # from the file, not the default
-    p = subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", "fe", "needle",
-                        "--load-offset", "1,2"], capture_output=True, text=True)
-    assert p.returncode == 2 and "--load-offset" in p.stderr
 
 
 def test_json_reports_clamp_motion_and_strength(cli_run):
