@@ -46,8 +46,8 @@ class Comparison:
     def verdict(self) -> str:
         """agrees / differs / meets the criterion: the row's reading, stated with its tolerance."""
         if self.limit is not None and isinstance(self.ours, (int, float)):
-            return (f"meets the criterion (< {self.limit:g} {self.unit})" if self.ours < self.limit
-                    else f"fails the criterion (< {self.limit:g} {self.unit})")
+            return (f"meets the criterion (< {self.limit:.3g} {self.unit})" if self.ours < self.limit
+                    else f"fails the criterion (< {self.limit:.3g} {self.unit})")
         rel = self.relative_percent
         if rel is None or self.tolerance_percent is None:
             return ""
