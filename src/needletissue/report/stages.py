@@ -269,6 +269,54 @@ def _frame_beside_fe(c, res, comps) -> list[dict]:
     return out
 
 
+def _frame_beside_pelvis(data: dict, comps) -> list[dict]:
+    """The frame model fed with what the anatomical run measured along its pins: exposed length (bone
+    entry to the needle end), pin spacing across the axis, insertion depth, clamp height, the two
+    needles' mean tissue layers, and the force in the pins' frame (z out of the bone along the pins,
+    x from pin 1 to pin 2). The FE's needle maximum includes the (small) motion of the pelvis itself."""
+    import numpy as np
+
+    from needletissue import frame
+    from needletissue.frame.model import FE_CALIBRATION, FrameModel
+    from needletissue.ritz import Layer
+
+    site, per = data["site"], data["ritz"]["per_needle"]
+    if len(site["entries_mm"]) != 2:
+        return []
+    z = -np.asarray(site["direction"], float)
+    z /= np.linalg.norm(z)
+    e1, e2 = (np.asarray(e, float) for e in site["entries_mm"])
+    x = (e2 - e1) - ((e2 - e1) @ z) * z
+    spacing = float(np.linalg.norm(x))
+    x /= spacing
+    y = np.cross(z, x)
+    layers = tuple(Layer(la["name"], float(np.mean([p["model"]["layers"][i]["thickness_mm"] for p in per])),
+                         la["k_N_per_mm2"]) for i, la in enumerate(per[0]["model"]["layers"]))
+    free = float(np.mean([p["model"]["free_length_mm"] for p in per]))
+    model = FrameModel(needles=2, spacing_mm=spacing, diameter_mm=site["needle_diameter_mm"], free_length_mm=free,
+                       depth_mm=site["depth_in_bone_mm"], clamp_length_mm=site["clamp_size_mm"][0],
+                       layers=layers, **FE_CALIBRATION)
+    u = np.asarray(data["force_vector_unit"], float)
+    out = []
+    for r in data["results"]:
+        f = r["force_N"] * u
+        fr = frame.solve(force=(float(f @ x), float(f @ y), float(f @ z)), model=model)
+        fe = r["max_needle_deformation_mm"]
+        goal = max(0.432, 0.024 * fe)
+        comps.append(Comparison(
+            f"|frame model - FE|, max needle deflection at {r['force_N']:g} N (anatomical model: 2 needles, "
+            f"{r['force_N'] / 2:g} N per needle, exposed length {free:.0f} mm, measured layers)",
+            abs(fr.max_needle_deflection_mm - fe), "mm", None,
+            f"frame {fr.max_needle_deflection_mm:.3f} mm, FE {fe:.3f} mm (demo mesh); frame fed with the "
+            f"measured lengths and the two needles' mean layers", limit=goal))
+        out.append({"force_N": r["force_N"], "frame_max_needle_deflection_mm": fr.max_needle_deflection_mm,
+                    "fe_max_needle_deformation_mm": fe, "goal_mm": goal, "force_in_pin_frame_N": list(fr.force_N),
+                    "frame_model": {"spacing_mm": spacing, "free_length_mm": free,
+                                    "layers_mm": [la.thickness_mm for la in layers]},
+                    "frame_warnings": list(fr.warnings)})
+    return out
+
+
 # --- anatomical pelvis model (needs ../shared/data, $NEEDLETISSUE_DATA or --ct) --------------------
 
 
@@ -339,6 +387,7 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
         comps.append(Comparison(f"Soft tissue along {t['needle']}", t["total_mm"], "mm",
                                 "soft_tissue_thickness_mean_mm", "paper: mean of 10 patients (+- 5.43 mm); "
                                 "agrees = within one patient SD", tolerance_percent=100 * sd))
+    data["frame"] = _frame_beside_pelvis(data, comps)
     from needletissue.report.viewer import model_scene, write_viewer
 
     base, top = data["site"]["needle_axes_mm"][0]
