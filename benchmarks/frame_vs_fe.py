@@ -116,7 +116,10 @@ def main(argv=None):
     records = [r for r in data["results"] if r.get("status", "ok") == "ok"]
     if not records:
         raise SystemExit(f"no FE results in {a.data}")
-    report = {"data": str(a.data), "physical": {}, "calibrated": None}
+    import hashlib
+
+    report = {"data": a.data.name, "data_sha256": hashlib.sha256(a.data.read_bytes()).hexdigest(),
+              "configurations": len({r["config_id"] for r in records}), "physical": {}, "calibrated": None}
     rows = compare(records)
     report["physical"] = {"summary": summary(rows), "rows": rows}
     _print("frame (physical parameters, factors 1)", report["physical"]["summary"])
