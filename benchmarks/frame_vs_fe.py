@@ -10,7 +10,7 @@ centre is its force acting at `load_point_mm`, statically the same), and compare
 - the clamp-centre displacement vector (FE: best rigid motion of the clamp nodes), error |u_frame - u_FE|,
 - the max needle deflection (FE `max_needle_deformation_mm`, the part in the clamp included).
 Goal (issue #14): every point within max(0.432 mm, 2.4 % of the FE value), median below 1 %.
---calibrate: also fit (foundation_factor, axial_factor, tissue_factor) to all points by least squares
+--calibrate: also fit (foundation_factor, axial_factor; with --fit-tissue tissue_factor) to all points by least squares
 (needletissue.frame.calibration) and report the errors with the fitted factors (in-sample: 2 parameters
 on all points) and their 95 % intervals. Runs in seconds.
 """
@@ -30,6 +30,9 @@ from needletissue.ritz.model import DEFAULT_LAYERS, Layer
 
 HERE = Path(__file__).parent
 GOAL_MM, GOAL_REL, GOAL_MEDIAN = 0.432, 0.024, 0.01
+# The tissue factor is not identifiable from configurations whose tissue carries little load (its fit runs
+# to a bound); it stays at its physical value unless --fit-tissue.
+FIT_PARAMS = ("foundation_factor", "axial_factor")
 
 
 def model_of(rec: dict, **factors) -> FrameModel:
@@ -63,7 +66,10 @@ def compare(records, **factors):
                      "fe_rotation_rad": rec["clamp_rotation_rad"], "frame_rotation_rad": list(r.clamp_rotation_rad),
                      "within_goal": bool(e_c <= max(GOAL_MM, GOAL_REL * np.linalg.norm(u_fe))
                                          and e_d <= max(GOAL_MM, GOAL_REL * d_fe)),
-                     "frame_error_estimate_mm": r.error_estimate_mm})
+                     "frame_error_estimate_mm": r.error_estimate_mm,
+                     # not in the goal: the pins' tilt at the bone surface (FE: cubic fit of the axis near z = 0)
+                     "fe_root_slope_rad": [math.atan(math.hypot(*sl)) for sl in rec["root_slope"]],
+                     "frame_root_slope_rad": [n.root_slope_rad for n in r.needles]})
     return rows
 
 
@@ -74,6 +80,10 @@ def summary(rows) -> dict:
         pct = np.array([r[f"{key}_pct"] for r in rows])
         out[key] = {"max_mm": float(mm.max()), "median_mm": float(np.median(mm)), "max_pct": float(pct.max()),
                     "median_pct": float(np.median(pct))}
+    ds = np.array([abs(a - b) for r in rows for a, b in zip(r["frame_root_slope_rad"], r["fe_root_slope_rad"])])
+    fs = np.array([b for r in rows for b in r["fe_root_slope_rad"]])
+    out["root_slope"] = {"max_error_rad": float(ds.max()), "median_error_rad": float(np.median(ds)),
+                         "max_fe_rad": float(fs.max())}
     out["goal_met"] = bool(out["within_goal"] == len(rows) and out["clamp_error"]["median_pct"] < 100 * GOAL_MEDIAN
                            and out["max_needle_error"]["median_pct"] < 100 * GOAL_MEDIAN)
     return out
@@ -85,21 +95,31 @@ def _print(title, s):
         v = s[key]
         print(f"  {key:17s} max {v['max_mm']:.3f} mm ({v['max_pct']:.2f} %), median {v['median_mm']:.3f} mm "
               f"({v['median_pct']:.2f} %)")
+    v = s["root_slope"]
+    print(f"  root slope        max error {v['max_error_rad']:.4f} rad, median {v['median_error_rad']:.4f} rad "
+          f"(FE slopes up to {v['max_fe_rad']:.4f} rad)")
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, default=HERE / "frame_sweep" / "fe_sweep.json")
     p.add_argument("--calibrate", action="store_true")
+    p.add_argument("--fit-tissue", action="store_true", help="fit the tissue factor too")
     p.add_argument("--cross-validate", action="store_true",
                    help="leave one configuration out: fit on the others, predict it (out-of-sample errors)")
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args(argv)
+    global FIT_PARAMS
+    if a.fit_tissue:
+        FIT_PARAMS = (*FIT_PARAMS, "tissue_factor")
     data = json.loads(a.data.read_text())
     records = [r for r in data["results"] if r.get("status", "ok") == "ok"]
     if not records:
         raise SystemExit(f"no FE results in {a.data}")
-    report = {"data": str(a.data), "physical": {}, "calibrated": None}
+    import hashlib
+
+    report = {"data": a.data.name, "data_sha256": hashlib.sha256(a.data.read_bytes()).hexdigest(),
+              "configurations": len({r["config_id"] for r in records}), "physical": {}, "calibrated": None}
     rows = compare(records)
     report["physical"] = {"summary": summary(rows), "rows": rows}
     _print("frame (physical parameters, factors 1)", report["physical"]["summary"])
@@ -109,7 +129,7 @@ def main(argv=None):
         pts = [CalibrationPoint(model_of(r), tuple(r["force_vector_N"]),
                                 clamp_displacement_mm=tuple(r["clamp_centre_displacement_mm"]),
                                 max_needle_deflection_mm=r["max_needle_deformation_mm"]) for r in records]
-        c = calibration(pts, params=("foundation_factor", "axial_factor", "tissue_factor"))
+        c = calibration(pts, params=FIT_PARAMS)
         rows_c = compare(records, **c.params)
         report["calibrated"] = {"params": c.params, "intervals_95": c.intervals, "rms_mm": c.rms_mm,
                                 "summary": summary(rows_c), "rows": rows_c}
@@ -127,7 +147,7 @@ def main(argv=None):
             pts = [CalibrationPoint(model_of(r), tuple(r["force_vector_N"]),
                                     clamp_displacement_mm=tuple(r["clamp_centre_displacement_mm"]),
                                     max_needle_deflection_mm=r["max_needle_deformation_mm"]) for r in train]
-            c = calibration(pts, params=("foundation_factor", "axial_factor", "tissue_factor"))
+            c = calibration(pts, params=FIT_PARAMS)
             rows_cv += compare(test, **c.params)
         report["cross_validated"] = {"summary": summary(rows_cv), "rows": rows_cv}
         _print(f"frame (leave one of {len(configs)} configurations out)", report["cross_validated"]["summary"])

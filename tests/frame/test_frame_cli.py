@@ -107,6 +107,12 @@ def test_compensate_reaches_the_target():
         np.linalg.norm(frame.compensate(t, rot, F, model=m).correction_mm)
 
 
+@pytest.mark.parametrize("args", [["frame"], ["frame", "compensate"]])
+def test_help(args):
+    r = CliRunner().invoke(app, [*args, "--help"])
+    assert r.exit_code == 0 and "Usage" in r.output
+
+
 def test_compensate_cli():
     r = CliRunner().invoke(app, ["frame", "compensate", "--target", "0,5,0", "--force", "0,200,0", "--json"])
     assert r.exit_code == 0, r.output

@@ -77,7 +77,7 @@ def compensate(target_mm=(0.0, 0.0, 0.0), target_rad=(0.0, 0.0, 0.0), force=None
             r = None
         Q_new = expm(rot)
         change = float(np.linalg.norm(logm(Q_new @ Q.T)))
-        Q_used, Q = Q, Q_new
+        Q = Q_new
         if wrench_frame == "world" or change <= tol_rad:
             break
     else:
@@ -85,8 +85,8 @@ def compensate(target_mm=(0.0, 0.0, 0.0), target_rad=(0.0, 0.0, 0.0), force=None
                                f"(last change {change:.3g} rad)")
     C_cmd = B + t_b + R_b @ (C + uC - B)
     R_cmd = R_b @ Q
-    # prediction: the wrench the sensor would see at the commanded pose is Q_cmd-rotated; the last solve
-    # used Q_used, so the bone pose implied by the command with the last deflection:
+    # prediction: the bone pose the command produces when the sensor wrench is turned by the clamp's
+    # final rotation (one more solve), minus the target
     if wrench_frame == "world":
         res_t, res_r = np.zeros(3), np.zeros(3)
     else:
@@ -96,7 +96,6 @@ def compensate(target_mm=(0.0, 0.0, 0.0), target_rad=(0.0, 0.0, 0.0), force=None
         B_pred = C_cmd - R_pred @ (C + u2 - B)
         res_t = B_pred - (B + t_b)
         res_r = logm(R_pred @ R_b.T)
-        del Q_used
     naive = B + t_b + R_b @ (C - B)
     return Compensation(tuple((C_cmd - C).tolist()), tuple(logm(R_cmd).tolist()), tuple(res_t.tolist()),
                         tuple(res_r.tolist()), tuple((C_cmd - naive).tolist()), it, state, r)
