@@ -202,6 +202,12 @@ def test_coarse_solve_equilibrium_and_monotone(tmp_path):
     R = np.sum([np.asarray(v) for v in data["results"][-1]["reactions_N"].values()], axis=0)
     F = 100.0 * np.asarray(data["force_vector_unit"])
     assert np.linalg.norm(R + F) < 0.01 * 100.0, (R, F)
+    # elastic validity (issue 14): utilisation = max von Mises / strength, grows with the force
+    sa, sb = (r["strength"] for r in data["results"])
+    vm = sb["max_von_mises_MPa"]
+    assert sb["needle_yield_utilisation"] == pytest.approx(max(vm["needle_1"], vm["needle_2"]) / 880.0)
+    assert 0 < sa["needle_yield_utilisation"] < sb["needle_yield_utilisation"]
+    assert sb["bone_strength_utilisation"] > 0
     # relocatable: no absolute path into the folder; the figures rebuild from a moved copy
     import shutil
 
