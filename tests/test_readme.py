@@ -1,5 +1,5 @@
 """Every code block in README.md runs: Python blocks execute (numbers in their comments are checked to
-the printed digits), console blocks rerun and print what the README shows, command synopses name only
+the printed digits, a comment starting "True" is a claim that must hold), console blocks rerun and print what the README shows, command synopses name only
 options that exist, and the two set-up commands are the Makefile's. After a change that moves a
 console output, `python tests/readme_blocks.py --update` rewrites those blocks from a real run."""
 
@@ -45,6 +45,11 @@ def test_python_block_runs_and_its_numbers_hold(block, tmp_path, monkeypatch):
             exec(code, namespace)
             continue
         value = eval(compile(ast.Expression(stmt.value), block.id, "eval"), namespace)
+        comment = lines[stmt.end_lineno - 1].partition("#")[2].strip()
+        if comment.startswith("True"):  # a claim the example makes: it must hold
+            assert value is True or value == True, f"{block.id}: `{ast.unparse(stmt)}` is {value!r}"  # noqa: E712
+            checked += 1
+            continue
         m = NUMBERS.search(lines[stmt.end_lineno - 1])
         if m:
             printed = [t.strip() for t in m.group(1).split(",")]
