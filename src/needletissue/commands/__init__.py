@@ -5,3 +5,18 @@ def from_command_line(ctx) -> list[str]:
     """The options typed on the command line (not defaults): those override a --config file."""
     # by name: Typer may bring its own copy of click, whose ParameterSource is a different enum
     return [n for n in ctx.params if getattr(ctx.get_parameter_source(n), "name", "") == "COMMANDLINE"]
+
+
+def numbers(option: str, text: str | None, n: int = 3, unit: str = "") -> tuple[float, ...] | None:
+    """`--option X,Y,Z` -> n floats (None stays None); anything else is one InputError naming the option."""
+    from needletissue.errors import InputError
+
+    if text is None:
+        return None
+    try:
+        v = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        v = ()
+    if len(v) != n:
+        raise InputError(option, f"expected {n} comma-separated numbers{f' ({unit})' if unit else ''}, got {text!r}")
+    return v

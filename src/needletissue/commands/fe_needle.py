@@ -8,6 +8,7 @@ from typing import List, Optional
 
 import typer
 
+from needletissue.commands import numbers
 from needletissue.errors import FORCE_RANGE_HELP
 
 
@@ -83,21 +84,9 @@ def register(app: typer.Typer, groups) -> None:
         p = ctx.params
         changes = {}
         if "direction" in given:
-            try:
-                dvec = tuple(float(x) for x in direction.split(","))
-            except ValueError:
-                raise InputError("--direction", f"expected three numbers x,y,z, got {direction!r}") from None
-            if len(dvec) != 3:
-                raise InputError("--direction", f"expected three numbers x,y,z, got {direction!r}")
-            changes["direction"] = dvec
+            changes["direction"] = numbers("--direction", direction)
         if "load_offset" in given:
-            try:
-                offset = tuple(float(x) for x in load_offset.split(","))
-            except ValueError:
-                raise InputError("--load-offset", f"expected three numbers x,y,z (mm), got {load_offset!r}") from None
-            if len(offset) != 3:
-                raise InputError("--load-offset", f"expected three numbers x,y,z (mm), got {load_offset!r}")
-            changes["load_offset"] = offset
+            changes["load_offset"] = numbers("--load-offset", load_offset, unit="mm")
         geometry = replace(base.geometry, **{n: p[n] for n in _GEOMETRY_OPTIONS if n in given})
         if force:
             changes["forces"] = tuple(force)

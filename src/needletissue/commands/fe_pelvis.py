@@ -6,6 +6,7 @@ from pathlib import Path
 
 import typer
 
+from needletissue.commands import numbers
 from needletissue.errors import FORCE_RANGE_HELP
 
 
@@ -66,13 +67,7 @@ def register(app, groups) -> None:
         if ssm and (ct is not None or labels is not None):
             raise InputError("--ssm", "give either --ssm or --ct/--labels, not both")
         if "force_direction" in given:
-            try:
-                fdir = [float(x) for x in force_direction.split(",")]
-            except ValueError:
-                raise InputError("--force-direction", f"expected x,y,z numbers, got {force_direction!r}") from None
-            if len(fdir) != 3:
-                raise InputError("--force-direction", f"expected three numbers x,y,z, got {force_direction!r}")
-            kw["force_direction"] = fdir
+            kw["force_direction"] = list(numbers("--force-direction", force_direction))
         from needletissue.fem.contact import parse_friction
 
         cli = {"ssm": ("source", "ssm" if ssm else "ct"), "ct": ("ct", str(ct) if ct else None),

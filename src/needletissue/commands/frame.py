@@ -8,19 +8,12 @@ from typing import List, Optional
 
 import typer
 
+from needletissue.commands import numbers
 from needletissue.errors import InputError
 
 
 def _triple(field: str, text: str | None):
-    if text is None:
-        return None
-    try:
-        v = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise InputError(field, f"expected three numbers X,Y,Z, got {text!r}") from None
-    if len(v) != 3:
-        raise InputError(field, f"expected three numbers X,Y,Z, got {text!r}")
-    return v
+    return numbers(field, text)
 
 
 def _opts():

@@ -12,19 +12,13 @@ from typing import Optional
 
 import typer
 
+from needletissue.commands import numbers
 from needletissue.errors import InputError
 
 
 def _floats(field: str, text: str | None, n: int):
-    if text is None:
-        return None
-    try:
-        v = [float(x) for x in text.split(",")]
-    except ValueError:
-        raise InputError(field, f"expected {n} comma-separated numbers, got {text!r}") from None
-    if len(v) != n:
-        raise InputError(field, f"expected {n} comma-separated numbers, got {text!r}")
-    return v
+    v = numbers(field, text, n)
+    return None if v is None else list(v)
 
 
 def register(app: typer.Typer, groups) -> None:
