@@ -71,7 +71,6 @@ def register(app: typer.Typer, groups) -> None:
         and the Rayleigh-Ritz comparison. Units: mm, N, MPa."""
         from dataclasses import replace
 
-        from needletissue.errors import InputError
         from needletissue.models.needle import NeedleModelConfig, run_needle_model
 
         if config_file is not None:

@@ -9,7 +9,6 @@ from typing import List, Optional
 import typer
 
 from needletissue.commands import numbers
-from needletissue.errors import InputError
 
 
 def _triple(field: str, text: str | None):
