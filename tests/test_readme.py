@@ -16,7 +16,7 @@ from readme_blocks import ROOT, blocks, console_commands, environment, matches, 
 
 BLOCKS = blocks()
 HEAVY = ("run_pelvis_model(", "run_needle_model(", "solve(model")
-NUMBERS = re.compile(r"#\s*([-+]?\d[\d.eE+-]*(?:\s*,\s*[-+]?\d[\d.eE+-]*)*)\s*(?:$|[,;(])")
+NUMBERS = re.compile(r"#\s*([-+]?\d[\d.eE+-]*(?:\s*,\s*[-+]?\d[\d.eE+-]*)*)\s*(?:$|[,;:(])")
 
 
 def _python_params():
