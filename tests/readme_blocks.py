@@ -125,6 +125,11 @@ def update(cwd: Path, demo: Path | None = None) -> None:
         p = run_demo(demo)
         if p.returncode != 0:
             raise SystemExit(f"make demo's command failed:\n{p.stderr[-3000:]}")
+        # the demo block: its stage lines and summary as a user sees them (results/ for the folder)
+        shown = [ln.rstrip().replace(str(demo), "results") for ln in (p.stdout + p.stderr).splitlines()
+                 if ln.startswith(("\u2022 ", "wrote ", "versions.json"))]
+        (block,) = [b for b in blocks(text) if b.lang == "console" and b.text.startswith("$ make demo")]
+        text = text[:block.start] + "\n".join(["$ make demo", "...", *shown]) + "\n" + text[block.end:]
     a, b = comparison_section(text)
     text = text[:a] + (demo / "comparison.md").read_text(encoding="utf-8") + text[b:]
     for b in reversed(blocks(text)):
