@@ -160,8 +160,9 @@ def test_demo_runs_every_stage_and_writes_what_the_readme_says(demo):
     data = json.loads((out / "results.json").read_text(encoding="utf-8"))
     assert {k: v["status"] for k, v in data["stages"].items()} == {k: "ok" for k in data["stages"]}
     (block,) = [b for b in BLOCKS if b.lang == "console" and b.text.startswith("$ make demo")]
-    wrote = block.text.strip().splitlines()[-1]
-    files = [f.strip() for f in wrote.split(":", 1)[1].replace("\n", " ").split(",")]
+    lines = block.text.strip().splitlines()
+    wrote = " ".join(lines[next(i for i, ln in enumerate(lines) if ln.startswith("wrote ")):])
+    files = [f.strip() for f in wrote.split(":", 1)[1].split(",")]
     assert all((out / f).is_file() for f in files), files
     assert wrote.split("(")[0] in p.stdout.replace(str(out), "results").replace("\n", " ")
 
