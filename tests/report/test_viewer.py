@@ -124,3 +124,19 @@ def test_viewer_draws_toggles_and_fits_a_phone_in_chromium(tmp_path):
             assert page.inner_text(".ntv-cbar-label") == "von Mises stress (MPa)"
             assert page.evaluate("document.documentElement.scrollWidth") <= width, "scrolls sideways"
             assert not errors, errors
+
+
+def test_a_view_that_cannot_be_built_is_a_note_not_a_failed_stage(tmp_path):
+    from needletissue.report.stages import _view
+
+    notes, files = [], []
+    common = dict(forces=[1.0, 2.0], region_tags={"bone": 0, "clamp": 1}, force_direction=(0, 1, 0),
+                  needle_axis=(0, 0, 1), frame_of_reference="model")
+    assert _view(tmp_path / "v.html", "t", notes, files, vtus=[tmp_path / "missing.vtu"] * 2, **common) == []
+    assert files == [] and len(notes) == 1 and "v.html not written" in notes[0]
+    (title, scene), = _view(tmp_path / "v.html", "t", notes, files, vtus=_write_frames(tmp_path), **common)
+    assert files == [tmp_path / "v.html"] and (tmp_path / "v.html").is_file()
+    # the force arrow starts at the clamp's centre; the view looks across the pin and the force
+    clamp = next(r for r in scene.regions if r.name == "clamp")
+    assert scene.arrow["origin"] == pytest.approx(clamp.points.mean(axis=0).tolist())
+    assert np.cross((0, 0, 1), (0, 1, 0)) @ np.asarray(scene.view) > 0

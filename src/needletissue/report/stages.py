@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 from needletissue.report.config import ReproduceConfig
 from needletissue.report.paper import PAPER, PAPER_RANKING, fe_key
@@ -228,15 +229,27 @@ def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     data["frame"] = _frame_beside_fe(c, res, comps)
     notes += [f"validity at {f['force_N']:g} N (frame model): " + "; ".join(f["frame_warnings"])
               for f in data["frame"] if f["frame_warnings"]]
+    forces = [r.force_N for r in res.results]
+    views = _view(d / "needle_3d.html", f"Needle FE model ({c.needles} needle(s)), deformed at each force",
+                  notes, files, vtus=[d / f"needle_{f:g}N.vtu" for f in forces], forces=forces,
+                  region_tags=res.results[-1].fe.region_tags, force_direction=res.config.direction,
+                  needle_axis=(0.0, 0.0, 1.0), frame_of_reference="model (z along the needles)")
+    return StageResult(NeedleFE(data), figures=figs, files=files, comparisons=comps, notes=notes, views=views)
+
+
+def _view(path, title: str, notes: list, files: list, **scene) -> list:
+    """The interactive 3D view of a model run (report.viewer), embedded in report.html and written
+    standalone to path; if it cannot be built, a note instead: the numbers stand without it."""
     from needletissue.report.viewer import model_scene, write_viewer
 
-    forces = [r.force_N for r in res.results]
-    scene = model_scene([d / f"needle_{f:g}N.vtu" for f in forces], forces, res.results[-1].fe.region_tags,
-                        res.config.direction, (0.0, 0.0, 1.0), frame_of_reference="model (z along the needles)")
-    title = f"Needle FE model ({c.needles} needle(s)), deformed at each force"
-    files.append(write_viewer(d / "needle_3d.html", scene, title))
-    return StageResult(NeedleFE(data), figures=figs, files=files, comparisons=comps, notes=notes,
-                       views=[(title, scene)])
+    try:
+        s = model_scene(scene.pop("vtus"), scene.pop("forces"), scene.pop("region_tags"),
+                        scene.pop("force_direction"), scene.pop("needle_axis"), **scene)
+        files.append(write_viewer(path, s, title))
+    except Exception as exc:
+        notes.append(f"3D view {Path(path).name} not written: {type(exc).__name__}: {exc}")
+        return []
+    return [(title, s)]
 
 
 def _frame_beside_fe(c, res, comps) -> list[dict]:
@@ -388,18 +401,14 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
                                 "soft_tissue_thickness_mean_mm", "paper: mean of 10 patients (+- 5.43 mm); "
                                 "agrees = within one patient SD", tolerance_percent=100 * sd))
     data["frame"] = _frame_beside_pelvis(data, comps)
-    from needletissue.report.viewer import model_scene, write_viewer
-
     base, top = data["site"]["needle_axes_mm"][0]
-    axis = [t - b for b, t in zip(base, top)]
     forces = [r.force_N for r in res.results]
-    scene = model_scene([d / f"pelvis_{f:g}N.vtu" for f in forces], forces, data["mesh"]["region_tags"],
-                        data["force_vector_unit"], axis, frame_of_reference="LPS",
-                        hidden=("adipose", "body_wall"))
-    title = "Anatomical model, deformed at each force (adipose and body wall hidden at start)"
-    files.append(write_viewer(d / "pelvis_3d.html", scene, title))
-    return StageResult(PelvisFE(data), figures=figs, files=files, comparisons=comps, notes=notes,
-                       views=[(title, scene)])
+    views = _view(d / "pelvis_3d.html", "Anatomical model, deformed at each force (adipose and body wall "
+                  "hidden at start)", notes, files, vtus=[d / f"pelvis_{f:g}N.vtu" for f in forces],
+                  forces=forces, region_tags=data["mesh"]["region_tags"],
+                  force_direction=data["force_vector_unit"], needle_axis=[t - b for b, t in zip(base, top)],
+                  frame_of_reference="LPS", hidden=("adipose", "body_wall"))
+    return StageResult(PelvisFE(data), figures=figs, files=files, comparisons=comps, notes=notes, views=views)
 
 
 def stage_list() -> list[Stage]:
