@@ -15,7 +15,7 @@ import pytest
 from readme_blocks import ROOT, blocks, console_commands, environment, matches, run_console
 
 BLOCKS = blocks()
-HEAVY = ("run_pelvis_model(", "run_needle_model(", "solve(model")
+HEAVY = ("run_pelvis_model(", "run_needle_model(", "compare_interfaces(", "solve(model")
 NUMBERS = re.compile(r"#\s*([-+]?\d[\d.eE+-]*(?:\s*,\s*[-+]?\d[\d.eE+-]*)*)\s*(?:$|[,;:(])")
 
 
