@@ -196,4 +196,25 @@ def test_gmsh_failure_is_a_clear_error(tmp_path, monkeypatch):
 
     monkeypatch.setattr(gmsh.model.mesh, "generate", boom)
     with pytest.raises(MeshError, match="gmsh failed"):
-        mesh_needle_model(NeedleGeometry(**COARSE), tmp_path / "x.msh")
+        mesh_needle_model(NeedleGeometry(**COARSE), tmp_path / "x.msh", isolate=False)
+
+
+def test_isolated_mesh_equals_in_process_mesh(tmp_path):
+    a = mesh_needle_model(NeedleGeometry(**COARSE), tmp_path / "a.msh")
+    b = mesh_needle_model(NeedleGeometry(**COARSE), tmp_path / "b.msh", isolate=False)
+    assert (a.nodes, a.tetrahedra, a.region_tetrahedra) == (b.nodes, b.tetrahedra, b.region_tetrahedra)
+    assert a.min_quality == pytest.approx(b.min_quality, rel=1e-12)
+
+
+def test_a_native_crash_in_the_mesher_is_an_error_not_a_dead_process(tmp_path, monkeypatch):
+    # gmsh's high-order optimiser once aborted the whole process (SIGABRT) in CI; the child stands for it
+    from needletissue.geometry.child import ChildCrash, call_in_child
+
+    with pytest.raises(ChildCrash, match="SIGABRT"):
+        call_in_child("os:abort", {}, what="gmsh (needle model)")
+    (tmp_path / "fails_in_child.py").write_text(
+        "from needletissue.geometry.needle import MeshError\n"
+        "def run():\n    raise MeshError('3 inverted tetrahedra')\n")
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    with pytest.raises(MeshError, match="3 inverted tetrahedra"):
+        call_in_child("fails_in_child:run", {}, what="gmsh")

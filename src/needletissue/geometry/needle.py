@@ -225,12 +225,36 @@ class NeedleMeshInfo:
 
 
 def mesh_needle_model(geometry: NeedleGeometry, path: str | Path, *, order: int = 1,
-                      verbose: bool = False) -> NeedleMeshInfo:
+                      verbose: bool = False, isolate: bool = True) -> NeedleMeshInfo:
     """Build the OCC geometry, mesh it conformingly, check it, write `path` (.msh, named groups).
 
     order=1: linear tets (the FE core converts to quadratic with the VTK node order it expects).
-    Raises MeshError when gmsh fails or produces inverted/degenerate elements.
+    Raises MeshError when gmsh fails, crashes or produces inverted/degenerate elements. With isolate
+    (the default) gmsh runs in a child process (~1 s more), so a native crash is a MeshError too.
     """
+    if isolate:
+        from needletissue.geometry.child import ChildCrash, call_in_child
+
+        try:
+            reply = call_in_child("needletissue.geometry.needle:_mesh_for_child",
+                                  {"geometry": geometry.to_dict(), "path": str(path), "order": order,
+                                   "verbose": verbose}, what="gmsh (needle model)")
+        except ChildCrash as exc:
+            raise MeshError(f"{exc} (mesh_size {geometry.mesh_size:g}, needle_mesh_size "
+                            f"{geometry.needle_mesh_size:g} mm)") from None
+        return NeedleMeshInfo(path=Path(path), geometry=geometry, nodes=reply["nodes"],
+                              tetrahedra=reply["tetrahedra"], region_tetrahedra=reply["region_tetrahedra"],
+                              min_quality=reply["min_quality"], mesh_time_s=reply["mesh_time_s"])
+    return _mesh_here(geometry, path, order=order, verbose=verbose)
+
+
+def _mesh_for_child(geometry: dict, path: str, order: int, verbose: bool) -> dict:
+    info = _mesh_here(NeedleGeometry(**geometry), path, order=order, verbose=verbose)
+    return {"nodes": info.nodes, "tetrahedra": info.tetrahedra, "region_tetrahedra": info.region_tetrahedra,
+            "min_quality": info.min_quality, "mesh_time_s": info.mesh_time_s}
+
+
+def _mesh_here(geometry: NeedleGeometry, path: str | Path, *, order: int, verbose: bool) -> NeedleMeshInfo:
     import time
 
     import gmsh

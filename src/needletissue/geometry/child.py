@@ -1,0 +1,90 @@
+"""Run a mesher in a child Python process, so that a crash in its native code (gmsh's high-order
+optimiser has aborted the whole process with SIGABRT) becomes one error, not a dead caller.
+
+A plain subprocess, not multiprocessing: the studies run inside Dask worker processes, which are
+daemonic and may not start multiprocessing children. The child dies with its parent (PDEATHSIG), so an
+interrupted run leaves no mesher behind.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from needletissue.errors import NeedleTissueError
+
+
+class ChildCrash(NeedleTissueError):
+    """The child process died without an answer (a signal, or an unexpected exception)."""
+
+
+def call_in_child(target: str, kwargs: dict, *, what: str) -> dict:
+    """Call `module:function(**kwargs)` in a fresh interpreter and return its JSON-able dict.
+
+    The package's own errors raised in the child are raised again here with their message and class
+    (subclasses of NeedleTissueError that take one message); anything else becomes ChildCrash naming `what`.
+    """
+    src = str(Path(__file__).resolve().parents[2])  # the directory holding `needletissue`
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (src, os.environ.get("PYTHONPATH")) if p))
+    with tempfile.TemporaryDirectory(prefix="needletissue-child-") as tmp:
+        answer = Path(tmp) / "answer.json"
+        request = json.dumps({"target": target, "kwargs": kwargs, "answer": str(answer)})
+        proc = subprocess.Popen([sys.executable, "-c", "from needletissue.geometry.child import main; main()"],
+                                stdin=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
+        try:
+            _, err = proc.communicate(request)
+        except BaseException:  # interrupted: do not leave the child computing
+            proc.kill()
+            proc.wait()
+            raise
+        if proc.returncode == 0 and answer.exists():
+            reply = json.loads(answer.read_text())
+            if "error" not in reply:
+                return reply["value"]
+            raise _error_class(reply["error"])(reply["message"])
+        last = (err or "").strip().splitlines()[-1:] or [""]
+        if proc.returncode < 0:
+            name = signal.Signals(-proc.returncode).name
+            raise ChildCrash(f"{what} crashed in native code ({name}); a slightly different element size "
+                             "usually avoids it")
+        raise ChildCrash(f"{what} failed in its child process (exit {proc.returncode}): {last[0]}")
+
+
+def _error_class(qualname: str):
+    module, _, name = qualname.rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError):
+        return ChildCrash
+    return cls if isinstance(cls, type) and issubclass(cls, NeedleTissueError) else ChildCrash
+
+
+def _die_with_parent() -> None:
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: the parent's kill on interrupt still applies
+        pass
+
+
+def main() -> None:
+    _die_with_parent()
+    req = json.loads(sys.stdin.read())
+    module, _, name = req["target"].partition(":")
+    try:
+        value = getattr(importlib.import_module(module), name)(**req["kwargs"])
+        reply = {"value": value}
+    except NeedleTissueError as exc:
+        # InputError takes (field, message); its str already carries both
+        cls = type(exc)
+        one_arg = cls.__init__ is NeedleTissueError.__init__ or cls.__init__ is Exception.__init__
+        reply = {"error": f"{cls.__module__}.{cls.__qualname__}" if one_arg else "needletissue.geometry.child.ChildCrash",
+                 "message": str(exc)}
+    Path(req["answer"]).write_text(json.dumps(reply))
