@@ -45,6 +45,30 @@ def test_missing_data_is_a_clear_error(tmp_path, monkeypatch):
         gp.ct_label_volume()
 
 
+@pytest.mark.parametrize("change, message", [
+    ("drop_iliopsoas", r"no iliopsoas \(id 89\) for the right side"),
+    ("shift_affine", r"not on the CT's grid.*30 mm"),
+    ("crop", r"grid \(120, 101, 112\) does not match the CT grid \(122, 101, 112\)"),
+])
+def test_a_label_map_that_does_not_fit_the_ct_is_named(tmp_path, change, message):
+    import nibabel as nib
+
+    src = gp.data_dir() / "pelvis_ct"
+    img = nib.load(src / "example_seg_fast_force_split.nii.gz")
+    seg, affine = np.asarray(img.dataobj), img.affine.copy()
+    if change == "drop_iliopsoas":
+        seg = np.where(seg == gp.CT_LABELS["right"]["iliopsoas"], 0, seg)
+    elif change == "shift_affine":
+        affine[0, 3] += 30.0
+    else:
+        seg = seg[:-2]
+    bad = tmp_path / "labels.nii.gz"
+    nib.save(nib.Nifti1Image(seg.astype(np.uint8), affine), bad)
+    with pytest.raises(InputError, match=message) as exc:
+        gp.ct_label_volume(src / "example_ct.nii.gz", bad)
+    assert exc.value.field == "labels"
+
+
 def test_labels_are_one_hemipelvis(vol):
     counts = np.bincount(vol.labels.ravel(), minlength=10)
     assert all(counts[t] > 0 for t in gp.TISSUES), counts

@@ -141,8 +141,17 @@ def ct_label_volume(ct: str | Path | None = None, labels: str | Path | None = No
     img_ct, img_lab = nib.as_closest_canonical(nib.load(ct)), nib.as_closest_canonical(nib.load(labels))
     hu = np.asarray(img_ct.dataobj, dtype=np.float32)
     seg = np.asarray(img_lab.dataobj).astype(np.int32)
-    if hu.shape != seg.shape or not np.allclose(img_ct.affine, img_lab.affine, atol=1e-3):
+    if hu.shape != seg.shape:
         raise InputError("labels", f"label map grid {seg.shape} does not match the CT grid {hu.shape}")
+    if not np.allclose(img_ct.affine, img_lab.affine, atol=1e-3):
+        shift = float(np.abs(img_ct.affine - img_lab.affine).max())
+        raise InputError("labels", f"label map is not on the CT's grid: their voxel-to-mm affines differ by up to "
+                                   f"{shift:.3g} mm (same shape {hu.shape}); resample the labels onto the CT")
+    present = set(np.unique(seg).tolist())
+    missing = [f"{name} (id {i})" for name, i in CT_LABELS[side].items() if i not in present]
+    if missing:
+        raise InputError("labels", f"label map has no {', '.join(missing)} for the {side} side; the model "
+                                   f"needs every tissue of {sorted(CT_LABELS[side])} (TotalSegmentator ids)")
     A = img_ct.affine
     sp = np.abs(np.diag(A[:3, :3]))
     if not np.allclose(sp, sp[0], rtol=1e-3) or not np.allclose(A[:3, :3], np.diag(np.diag(A[:3, :3]))):
