@@ -197,7 +197,8 @@ def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     for r in res.results:
         files.append(d / f"needle_{r.force_N:g}N.vtu")
         r.fe.write_vtu(files[-1], frame=FRAME, force_N=r.force_N)
-    files.append(write_series(d / "needle.pvd", [(r.force_N, f.name) for r, f in zip(res.results, files)]))
+    files += [f.with_suffix(".vtm") for f in files]  # beside each VTU: its regions as named blocks
+    files.append(write_series(d / "needle.pvd", [(r.force_N, f"needle_{r.force_N:g}N.vtm") for r in res.results]))
     notes = [f"mesh: {res.mesh['tetrahedra']:,} tetrahedra (order {res.mesh['order']}, {res.mesh['dofs']:,} dofs), "
              f"wall time {res.wall_time_s:.1f} s"]
     notes += drucker_notes(data["results"])
@@ -366,7 +367,7 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     res = run_pelvis_model(PelvisConfig(source=c.source, ct=ct, labels=labels, forces=list(c.forces_N),
                                         mesh_size=c.mesh_size_mm, out=str(d), figures=False))
     data = res.to_dict()
-    files = sorted(d.glob("*.vtu")) + sorted(d.glob("*.pvd"))
+    files = sorted(d.glob("*.vtu")) + sorted(d.glob("*.vtm")) + sorted(d.glob("*.pvd"))
     notes = [f"mesh: {res.mesh.get('tetrahedra', 0):,} tetrahedra, wall time {res.wall_time_s:.1f} s", *res.notes]
     notes += drucker_notes(data["results"])
     figs = [plot_theory_vs_fe(data["results"], d / "pelvis_max_deformation_vs_force.png",

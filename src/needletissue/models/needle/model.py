@@ -342,7 +342,8 @@ def write_outputs(result: NeedleModelResult, out_dir: Path) -> None:
         name = f"needle_{r.force_N:g}N.vtu"
         r.fe.write_vtu(out_dir / name, frame=FRAME, force_N=r.force_N)
         files[f"vtu_{r.force_N:g}N"] = name
-    files["series"] = write_series(out_dir / "needle.pvd", [(r.force_N, files[f"vtu_{r.force_N:g}N"])
+        files[f"vtm_{r.force_N:g}N"] = Path(name).with_suffix(".vtm").name  # the same, one block per region
+    files["series"] = write_series(out_dir / "needle.pvd", [(r.force_N, files[f"vtm_{r.force_N:g}N"])
                                                           for r in result.results]).name
     from needletissue.models.needle.plot import plot_deflection_curves, plot_deformed
 
