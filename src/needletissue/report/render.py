@@ -14,26 +14,13 @@ from needletissue.report.paper import PAPER
 from needletissue.runinfo import write_atomic
 
 
-def render_vtu(vtu: str | Path, png: str | Path, title: str, scale: float = 1.0) -> Path:
-    """Outer surface of the deformed mesh (true scale unless `scale`), coloured by |u| in mm."""
+def render_vtu(vtu: str | Path, png: str | Path, scene) -> Path:
+    """A result VTU drawn as models.render draws it (scene: models.render.RenderScene): bone opaque, tissue
+    translucent, needles and clamp by |u|, undeformed outline, force arrow, axes, colour bar beside."""
     os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
-    import pyvista as pv
+    from needletissue.models.render import render_vtu as render
 
-    grid = pv.read(str(vtu))
-    u = np.asarray(grid.point_data["displacement"])
-    grid.point_data["|u| (mm)"] = np.linalg.norm(u, axis=1)
-    surf = grid.extract_surface(nonlinear_subdivision=0)
-    surf = surf.warp_by_vector("displacement", factor=scale)
-    p = pv.Plotter(off_screen=True, window_size=(1200, 900))
-    p.add_mesh(surf, scalars="|u| (mm)", cmap="viridis", show_edges=False)
-    p.add_text(title, font_size=10)
-    p.view_isometric()
-    tmp = Path(png).with_name(f".{Path(png).stem}.partial.png")
-    p.screenshot(str(tmp))
-    p.close()
-    write_atomic(png, tmp.read_bytes())
-    tmp.unlink()
-    return Path(png)
+    return render(vtu, png, scene)
 
 
 def plot_theory_vs_fe(results: list[dict], path: str | Path, title: str, dpi: int = 110) -> Path:
@@ -83,9 +70,9 @@ def isolated(fn, *args):
             raise RuntimeError(f"{getattr(fn, '__name__', fn)} crashed (native code)") from None
 
 
-def try_render(vtu, png, title, notes: list, figures: list) -> None:
+def try_render(vtu, png, scene, notes: list, figures: list) -> None:
     """Render in a child process; on a crash add a note instead of a figure."""
     try:
-        figures.append(isolated(render_vtu, vtu, png, title))
+        figures.append(isolated(render_vtu, vtu, png, scene))
     except Exception as exc:  # the numbers stand without the picture
         notes.append(f"render of {Path(vtu).name} failed: {exc}")

@@ -207,8 +207,12 @@ def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
                               f"Needle FE model ({c.needles} needle(s)) vs Ritz and the paper", cfg.report.dpi),
             plot_region_deformation(data["results"], d / "needle_fe_region_deformation.png",
                                     "Needle FE model: maximum deformation per region", cfg.report.dpi)]
-    try_render(d / f"needle_{res.results[-1].force_N:g}N.vtu", d / "needle_deformed.png", f"needle FE model, {res.results[-1].force_N:g} N "
-               "(true scale), |u| in mm", notes, figs)
+    from needletissue.models.render import RenderScene
+
+    top = res.results[-1].force_N
+    try_render(d / f"needle_{top:g}N.vtu", d / "needle_deformed.png",
+               RenderScene(f"Needle FE model, {c.needles} needle(s), {top:g} N", res.config.direction,
+                           load_point_mm=tuple(res.config.load_point)), notes, figs)
     # Not like for like with any FE number of the paper (its FE model is the anatomical one, two needles):
     # no paper column here, the paper's value in the note; the anatomical rows carry the comparison.
     comps = []
@@ -376,8 +380,9 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
                                     "Anatomical model: maximum deformation per tissue", cfg.report.dpi)]
     last = d / f"pelvis_{res.results[-1].force_N:g}N.vtu"
     if last.exists():
-        try_render(last, d / "pelvis_deformed.png", f"anatomical model, {res.results[-1].force_N:g} N "
-                   "(true scale), |u| in mm", notes, figs)
+        from needletissue.models.pelvis.report import render_scene
+
+        try_render(last, d / "pelvis_deformed.png", render_scene(data), notes, figs)
     comps = []
     exposed = [t.get("exposed_length_mm") for t in res.thickness if t.get("exposed_length_mm") is not None]
     length = f", exposed length {min(exposed):.0f}-{max(exposed):.0f} mm" if exposed else ""
