@@ -295,6 +295,7 @@ class freetype_text:
     separator and drops it ("|u| (mm)" showed as "u (mm)"); FreeType draws the text as written."""
 
     def __enter__(self):
+        import vtkmodules.vtkRenderingFreeType  # noqa: F401  (registers the text renderer)
         from vtkmodules.vtkRenderingCore import vtkTextRenderer
 
         self.tr = vtkTextRenderer.GetInstance()
