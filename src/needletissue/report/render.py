@@ -23,6 +23,36 @@ def render_vtu(vtu: str | Path, png: str | Path, scene) -> Path:
     return render(vtu, png, scene)
 
 
+def caption(png: str | Path) -> str:
+    """A PNG's caption: its "Description" text (the figure writers put what the figure shows there), or
+    "" when it has none."""
+    try:
+        from PIL import Image
+
+        with Image.open(png) as im:
+            return str(getattr(im, "text", {}).get("Description", ""))
+    except Exception:  # not a PNG we can read: the file name stands as the caption
+        return ""
+
+
+def describe(png: str | Path, text: str) -> Path:
+    """Write `text` into a PNG's "Description" (the report's caption; it travels with a shared PNG).
+    The pixels are unchanged; rewritten atomically."""
+    from PIL import Image
+    from PIL.PngImagePlugin import PngInfo
+
+    with Image.open(png) as im:
+        im.load()
+        info = PngInfo()
+        for k, v in getattr(im, "text", {}).items():
+            if k != "Description":
+                info.add_itxt(k, v)
+        info.add_itxt("Description", text)
+        buf = io.BytesIO()
+        im.save(buf, format="png", pnginfo=info)
+    return write_atomic(png, buf.getvalue())
+
+
 def plot_theory_vs_fe(results: list[dict], path: str | Path, title: str, dpi: int = 110) -> Path:
     """Maximum needle deformation (FE) and Ritz tip deflection against force, with the paper's values
     (FE 5.8152 / 10.8990 / 18.0620 mm, Ritz 17.63 mm at 300 N) as markers: the paper's Fig. 12 analogue."""
@@ -48,7 +78,9 @@ def plot_theory_vs_fe(results: list[dict], path: str | Path, title: str, dpi: in
     ax.legend(fontsize=8)
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
+    text = (f"{title}: maximum needle deformation (FE) and Ritz tip deflection against the reduction force "
+            f"({', '.join(f'{x:g}' for x in f)} N), with the paper's FE (x) and Ritz (+) values.")
+    fig.savefig(buf, format="png", dpi=dpi, metadata={"Description": text})
     plt.close(fig)
     return write_atomic(path, buf.getvalue())
 

@@ -39,6 +39,10 @@ def materials_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
         data = MaterialCurves([curves.curve(n, "uniaxial", c.stretch_max, c.points).to_json() for n in c.names])
     fig = d / "stress_stretch_uniaxial.png"
     plot.plot_curves(tuple(c.names), "uniaxial", stretch_max=c.stretch_max, out=fig)
+    from needletissue.report.render import describe
+
+    describe(fig, f"Nominal stress (MPa) against stretch in uniaxial tension and compression of "
+                  f"{', '.join(c.names)} (closed form); shaded: the Drucker-stable range (paper Fig. 3).")
     import matplotlib.pyplot as plt
 
     plt.close("all")
@@ -65,6 +69,10 @@ def traction_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
         r = traction.run(traction.TractionConfig(material=m))
         fig = d / f"traction_{m}.png"
         traction.plot(r, fig)
+        from needletissue.report.render import describe
+
+        describe(fig, f"Traction validation, {m}: nominal stress against the pulled displacement, FE block "
+                      "(points) and closed form (line) (paper Sec. 3.2).")
         results.append(r.to_dict())
         figs.append(fig)
         comps.append(Comparison(f"Traction validation RMSE, {m} (Eq. 16)", r.rmse_MPa, "MPa",
@@ -104,6 +112,11 @@ def ritz_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     import matplotlib.pyplot as plt
 
     plt.close(fig)
+    from needletissue.report.render import describe
+
+    describe(d / "ritz_deflection_fig5.png", f"Rayleigh-Ritz needle deflection v(z) along the needle at "
+             f"{', '.join(f'{r.force_N:g}' for r in res)} N (1 needle, free length {model.free_length_mm:g} mm; "
+             "paper Fig. 5).")
     curves = {}
     for r in res:
         z, v = r.curve(101)
@@ -162,7 +175,9 @@ def plot_region_deformation(results: list[dict], path, title: str, dpi: int = 11
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
+    forces = ", ".join(f"{r['force_N']:g}" for r in results)
+    text = f"{title}, at {forces} N: maximum displacement |u| (mm) of each region."
+    fig.savefig(buf, format="png", dpi=dpi, metadata={"Description": text})
     plt.close(fig)
     return write_atomic(path, buf.getvalue())
 
