@@ -175,9 +175,7 @@ def build(grid, regions: Regions, scene: RenderScene, force_N: float, frame: str
             origin = _steel_centre(grid, tag, regions)
             centres = np.asarray(grid.points)[_tets(grid)].mean(axis=1)
             far = ids["tissue"][(centres[ids["tissue"]] - origin) @ across < 0]
-            skin = grid.extract_cells(far).extract_surface(algorithm="dataset_surface").warp_by_vector("displacement",
-                                                                                    factor=scene.scale)
-            a = pl.add_mesh(skin, opacity=0.85, name="tissue", **colour)
+            a = pl.add_mesh(surface(far), opacity=0.85, name="tissue", **colour)
         else:
             skin = _outer_surface(grid, ids["tissue"]).warp_by_vector("displacement", factor=scene.scale)
             # unlit: on a jagged (voxel-derived) skin, shading every facet differently reads as shards
@@ -202,10 +200,10 @@ def build(grid, regions: Regions, scene: RenderScene, force_N: float, frame: str
     size = float(np.linalg.norm(hi - lo))
     load = _load_point(grid, tag, regions, scene)
     if load is not None:
-        start = load + scene.scale * _mean_u_near(grid, load, tag, regions)
+        start = load + scene.scale * _clamp_motion(grid, tag, regions)
         length = 0.3 * size
-        pl.add_mesh(pv.Arrow(start=start, direction=f, scale=length, tip_length=0.2, tip_radius=0.06, shaft_radius=0.02),
-                    color=ARROW_COLOUR, name="force_arrow")
+        arrow = pv.Arrow(start=start, direction=f, scale=length, tip_length=0.2, tip_radius=0.06, shaft_radius=0.02)
+        pl.add_mesh(arrow, color=ARROW_COLOUR, name="force_arrow")
         pl.add_point_labels(np.atleast_2d(start + 1.05 * length * f), [f"F = {force_N:g} N"], font_size=22,
                             text_color=ARROW_COLOUR, shape_color="white", shape_opacity=0.8,
                             always_visible=True, show_points=False, name="force_label")
@@ -252,7 +250,7 @@ def build(grid, regions: Regions, scene: RenderScene, force_N: float, frame: str
         said.append(f"red arrow: the {force_N:g} N reduction force at its load point, along "
                     f"({f[0]:.2f}, {f[1]:.2f}, {f[2]:.2f})")
     legend.append("frame: " + frame)
-    pl.add_text(_wrap("\n".join(legend), 32), position=(8, 12), font_size=10, color="black", name="legend")
+    pl.add_text(_wrap("\n".join(legend), 30), position=(8, 12), font_size=10, color="black", name="legend")
     scale = "true scale" if scene.scale == 1 else f"displacements scaled x{scene.scale:g}"
     caption = (f"{scene.title}: deformed shape ({scale}); " + "; ".join(said)
                + (f". Frame: {frame}." if frame else "."))
@@ -343,7 +341,7 @@ def _load_point(grid, tag, regions, scene):
     return np.asarray(grid.extract_cells(cells).points).mean(axis=0)
 
 
-def _mean_u_near(grid, point, tag, regions):
+def _clamp_motion(grid, tag, regions):
     """Mean displacement of the clamp (the load moves with it); zero without a clamp."""
     cells = _steel_cells(tag, regions, "clamp")
     if not len(cells):

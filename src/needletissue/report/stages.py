@@ -226,7 +226,8 @@ def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
 
     top = res.results[-1].force_N
     try_render(d / f"needle_{top:g}N.vtu", d / "needle_deformed.png",
-               RenderScene(f"Needle FE model, {c.needles} needle(s), {top:g} N", res.config.direction,
+               RenderScene(f"Needle FE model, {c.needles} needle{'s' if c.needles > 1 else ''}, {top:g} N",
+                           res.config.direction,
                            load_point_mm=tuple(res.config.load_point)), notes, figs)
     # Not like for like with any FE number of the paper (its FE model is the anatomical one, two needles):
     # no paper column here, the paper's value in the note; the anatomical rows carry the comparison.
