@@ -200,7 +200,7 @@ def build(grid, regions: Regions, scene: RenderScene, force_N: float, frame: str
     size = float(np.linalg.norm(hi - lo))
     load = _load_point(grid, tag, regions, scene)
     if load is not None:
-        start = load + scene.scale * _clamp_motion(grid, tag, regions)
+        start = _moved_with_clamp(load, grid, tag, regions, scene.scale)
         length = 0.3 * size
         arrow = pv.Arrow(start=start, direction=f, scale=length, tip_length=0.2, tip_radius=0.06, shaft_radius=0.02)
         pl.add_mesh(arrow, color=ARROW_COLOUR, name="force_arrow")
@@ -341,12 +341,20 @@ def _load_point(grid, tag, regions, scene):
     return np.asarray(grid.extract_cells(cells).points).mean(axis=0)
 
 
-def _clamp_motion(grid, tag, regions):
-    """Mean displacement of the clamp (the load moves with it); zero without a clamp."""
+def _moved_with_clamp(point, grid, tag, regions, scale):
+    """Where `point` goes when the clamp moves as a rigid body (the best-fit rotation and translation of
+    its nodes, Kabsch): the load point rides on the steel clamp, which turns as the needles bend."""
     cells = _steel_cells(tag, regions, "clamp")
     if not len(cells):
-        return np.zeros(3)
-    return np.asarray(grid.extract_cells(cells).point_data["displacement"]).mean(axis=0)
+        return np.asarray(point, float)
+    clamp = grid.extract_cells(cells)
+    p = np.asarray(clamp.points, float)
+    q = p + scale * np.asarray(clamp.point_data["displacement"], float)
+    cp, cq = p.mean(axis=0), q.mean(axis=0)
+    u, _, vt = np.linalg.svd((p - cp).T @ (q - cq))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return cq + rot @ (np.asarray(point, float) - cp)
 
 
 def _outer_surface(grid, cell_ids):
@@ -378,11 +386,12 @@ def _undeformed_outline(grid, tag, regions):
         elif name.startswith("clamp"):
             edges = sub.extract_surface(algorithm="dataset_surface").extract_feature_edges(
                 feature_angle=30, boundary_edges=False, non_manifold_edges=False, manifold_edges=False)
-            # the outer box, not the small loops of the needle holes through it
-            span = float(np.linalg.norm(np.ptp(np.asarray(sub.points), axis=0)))
-            for piece in edges.connectivity().split_bodies():
-                if np.linalg.norm(np.ptp(np.asarray(piece.points), axis=0)) > 0.5 * span:
-                    parts.append(piece.extract_surface(algorithm=None))
+            # the outer box (its edges are one connected piece, the widest), not the loops of the needle
+            # holes through it
+            pieces = list(edges.connectivity().split_bodies())
+            if pieces:
+                widest = max(pieces, key=lambda q: float(np.linalg.norm(np.ptp(np.asarray(q.points), axis=0))))
+                parts.append(widest.extract_surface(algorithm=None))
     if not parts:
         return None
     return pv.merge(parts) if len(parts) > 1 else parts[0]
