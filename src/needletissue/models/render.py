@@ -279,6 +279,24 @@ def render_vtu(vtu, png, scene: RenderScene) -> Path:
     return render(build(grid, regions, scene, force if force is not None else float("nan"), frame), png)
 
 
+def isolated(fn, *args):
+    """Run fn(*args) in a fresh process: a crash in VTK's native code cannot take the caller down."""
+    import multiprocessing as mp
+    import signal
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    # Native libraries (ITK, VTK) may reset SIGPIPE to its default; a child that dies would then
+    # kill this process through the closed pipe instead of raising BrokenProcessPool.
+    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+
+    with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
+        try:
+            return pool.submit(fn, *args).result()
+        except BrokenProcessPool:
+            raise RuntimeError(f"{getattr(fn, '__name__', fn)} crashed (native code)") from None
+
+
 def _axis_labels(frame: str) -> tuple[str, str, str]:
     """Anatomical directions on the triad's arrows when the frame is RAS or LPS."""
     if "RAS" in frame:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import io
 import os
-import signal
 from pathlib import Path
 
 import numpy as np
@@ -85,25 +84,10 @@ def plot_theory_vs_fe(results: list[dict], path: str | Path, title: str, dpi: in
     return write_atomic(path, buf.getvalue())
 
 
-def isolated(fn, *args):
-    """Run fn(*args) in a fresh process: a crash in VTK's native code cannot take the caller down."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-    from concurrent.futures.process import BrokenProcessPool
-
-    # Native libraries (ITK, VTK) may reset SIGPIPE to its default; a child that dies would then
-    # kill this process through the closed pipe instead of raising BrokenProcessPool.
-    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
-
-    with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
-        try:
-            return pool.submit(fn, *args).result()
-        except BrokenProcessPool:
-            raise RuntimeError(f"{getattr(fn, '__name__', fn)} crashed (native code)") from None
-
-
 def try_render(vtu, png, scene, notes: list, figures: list) -> None:
     """Render in a child process; on a crash add a note instead of a figure."""
+    from needletissue.models.render import isolated
+
     try:
         figures.append(isolated(render_vtu, vtu, png, scene))
     except Exception as exc:  # the numbers stand without the picture

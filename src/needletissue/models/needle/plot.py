@@ -14,18 +14,26 @@ def plot_deformed(result, path: Path, scale: float = 1.0) -> Path:
     clamp by |u|, undeformed needle axes and clamp, force arrow at the load point, axes with the frame,
     colour bar beside the model). Rendered off-screen and written atomically."""
     from needletissue.models.needle.model import FRAME
-    from needletissue.models.render import RenderScene, Regions, build, grid_from_arrays, render
+    from needletissue.models.render import Regions, build, grid_from_arrays, render
 
     r = result.results[-1]
     fe = r.fe
-    g = result.config.geometry
     grid = grid_from_arrays(fe.points, fe.cells, fe.displacement, fe.cell_data["region"])
     regions = Regions({i: n for n, i in fe.region_tags.items()},
                       {fe.region_tags[n]: m for n, m in fe.materials.items() if n in fe.region_tags})
-    scene = RenderScene(f"Needle FE model, {g.needles} needle{'s' if g.needles > 1 else ''}, {r.force_N:g} N, "
-                        f"max needle deformation {r.max_needle_deformation_mm:.2f} mm", result.config.direction,
-                        load_point_mm=tuple(result.config.load_point), scale=scale)
-    return render(build(grid, regions, scene, r.force_N, FRAME), path)
+    return render(build(grid, regions, scene(result, scale), r.force_N, FRAME), path)
+
+
+def scene(result, scale: float = 1.0):
+    """The static render's scene of a needle model result at its largest force: the force along the
+    configured direction at the load point (gripper centre + load_offset), the needles along z."""
+    from needletissue.models.render import RenderScene
+
+    r = result.results[-1]
+    g = result.config.geometry
+    return RenderScene(f"Needle FE model, {g.needles} needle{'s' if g.needles > 1 else ''}, {r.force_N:g} N, "
+                       f"max needle deformation {r.max_needle_deformation_mm:.2f} mm", result.config.direction,
+                       load_point_mm=tuple(result.config.load_point), scale=scale)
 
 
 def plot_deflection_curves(result, path: Path) -> Path:
