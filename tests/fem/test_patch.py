@@ -78,7 +78,7 @@ def test_tensors_drucker_flag_and_paraview_files(tmp_path):
     assert any(k.startswith("coordinate frame: ") for k in m.field_data)
     assert m.cell_data["cauchy_stress_MPa"][0].shape == (len(model.mesh.cells), 9)
     pvd = (tmp_path / "fe.pvd").read_text(encoding="utf-8")
-    assert 'timestep="0.5" part="0" file="fe_0.vtu"' in pvd and 'timestep="1.0" part="0" file="fe_1.vtu"' in pvd
+    assert 'timestep="0.5" part="0" file="fe_0.vtm"' in pvd and 'timestep="1.0" part="0" file="fe_1.vtm"' in pvd
 
 
 def test_tissue_beyond_its_drucker_range_is_flagged_and_warned():

@@ -241,7 +241,9 @@ def test_coarse_solve_equilibrium_and_monotone(tmp_path):
     # ParaView: the series, and one numbering of the regions in the mesh and the result files
     import meshio
 
-    assert 'timestep="100.0" part="0" file="pelvis_100N.vtu"' in (tmp_path / "pelvis.pvd").read_text(encoding="utf-8")
+    # the series lists each force's multiblock (regions as named blocks), beside the whole-mesh VTU
+    assert 'timestep="100.0" part="0" file="pelvis_100N.vtm"' in (tmp_path / "pelvis.pvd").read_text(encoding="utf-8")
+    assert (tmp_path / "pelvis_100N" / "adipose.vtu").is_file()
     res_vtu, mesh_vtu = meshio.read(tmp_path / "pelvis_100N.vtu"), meshio.read(tmp_path / "pelvis_mesh.vtu")
     tags = data["mesh"]["region_tags"]
     assert {f"region {i} = {r} (material {gp_materials[r]})" for r, i in tags.items()} <= set(res_vtu.field_data)

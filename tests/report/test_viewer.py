@@ -140,3 +140,30 @@ def test_a_view_that_cannot_be_built_is_a_note_not_a_failed_stage(tmp_path):
     clamp = next(r for r in scene.regions if r.name == "clamp")
     assert scene.arrow["origin"] == pytest.approx(clamp.points.mean(axis=0).tolist())
     assert np.cross((0, 0, 1), (0, 1, 0)) @ np.asarray(scene.view) > 0
+
+
+@pytest.mark.browser
+def test_report_figures_are_full_width_captioned_and_fit_a_phone(tmp_path):
+    """report.html in Chromium: each figure spans the text column, its caption says what it shows (not only
+    the file name), and at phone width (390 px) nothing makes the page scroll sideways."""
+    from needletissue.report.config import load_config
+    from needletissue.report.pipeline import run_reproduce
+    from needletissue.report.stages import stage_list
+
+    quick = {"traction": {"enabled": False}, "needle_fe": {"enabled": False}, "pelvis": {"enabled": "off"}}
+    out = tmp_path / "res"
+    assert run_reproduce(load_config(overrides=quick), out, stage_list(), progress=False).ok
+    for width in (1100, 390):
+        with open_in_browser(out / "report.html", width=width) as (page, errors):
+            figs = page.evaluate("""() => [...document.querySelectorAll('figure')].map(f => ({
+                img: f.querySelector('img').getBoundingClientRect().width,
+                column: document.body.clientWidth - parseFloat(getComputedStyle(document.body).paddingLeft)
+                        - parseFloat(getComputedStyle(document.body).paddingRight),
+                caption: f.querySelector('figcaption').innerText}))""")
+            assert len(figs) >= 2
+            for f in figs:
+                assert f["img"] == pytest.approx(f["column"], abs=2), f
+                name = f["caption"].split()[-1]
+                assert name.endswith(".png") and len(f["caption"]) > len(name) + 20, f
+            assert page.evaluate("document.documentElement.scrollWidth") <= width, "scrolls sideways"
+            assert not errors, errors

@@ -117,32 +117,94 @@ class FEResult:
                 k: [float(lam[tag == i, 0].min()), float(lam[tag == i, 2].max())] for k, i in self.region_tags.items()}
         return to_jsonable(out)
 
-    def write_vtu(self, path, frame: str = FRAME_DEFAULT, force_N: float | None = None) -> Path:
+    def write_vtu(self, path, frame: str = FRAME_DEFAULT, force_N: float | None = None,
+                  blocks: bool = True) -> Path:
         """VTU for ParaView, written atomically: point displacement (mm); per cell von Mises and the Cauchy
         stress tensor (MPa), the Green-Lagrange strain tensor, principal stretches, drucker_stable and the
         region tag. Field data (ParaView: Information panel) name each region tag and its material, and the
-        coordinate frame (`frame`), as arrays whose names carry the text (meshio and ParaView read them)."""
-        import meshio
-
+        coordinate frame (`frame`), as arrays whose names carry the text (meshio and ParaView read them).
+        With `blocks`, also the same result split by region beside it (write_blocks: path with .vtm)."""
         path = Path(path)
-        cell_type = "tetra" if self.cells.shape[1] == 4 else "tetra10"
-        m = meshio.Mesh(
-            self.points, [(cell_type, self.cells)],
-            point_data={"displacement": self.displacement},
-            cell_data={k: [v] for k, v in self.cell_data.items()},
-        )
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.stem}.partial.vtu")
-        meshio.write(tmp, m, binary=True)
         field_data = {f"region {i} = {r}" + (f" (material {self.materials[r]})" if r in self.materials else ""): i
                       for r, i in self.region_tags.items()}
-        field_data[f"coordinate frame: {frame}"] = 0
-        if force_N is not None:
-            field_data["force_N"] = force_N
-        field_data["load_factor"] = self.load_factor
-        write_atomic(path, _with_field_data(tmp.read_bytes(), field_data))
-        tmp.unlink()
+        _write_vtu(path, self.points, self.cells, {"displacement": self.displacement}, self.cell_data,
+                   {**field_data, **self._load_field_data(frame, force_N)})
+        if blocks:
+            self.write_blocks(path.with_suffix(".vtm"), frame, force_N)
         return path
+
+    def _load_field_data(self, frame, force_N) -> dict:
+        out = {f"coordinate frame: {frame}": 0}
+        if force_N is not None:
+            out["force_N"] = force_N
+        out["load_factor"] = self.load_factor
+        return out
+
+    def write_blocks(self, path, frame: str = FRAME_DEFAULT, force_N: float | None = None) -> Path:
+        """ParaView multiblock file `path` (.vtm) with one block per region, the block named by the region,
+        and a folder of the same stem holding one VTU per region (`<stem>/<region>.vtu`, referenced by a
+        relative path: a copied result folder still opens). Each piece holds its region's cells and only
+        their nodes, with the fields of write_vtu, plus `mesh_node_id` / `mesh_cell_id` (the node and cell
+        numbers in the whole-mesh VTU) and field data naming its region, material, frame and force."""
+        from xml.sax.saxutils import quoteattr
+
+        path = Path(path)
+        folder = path.with_suffix("")
+        tag = np.asarray(self.cell_data["region"])
+        rows, written = [], set()
+        for region, i in sorted(self.region_tags.items(), key=lambda kv: kv[1]):
+            ids = np.flatnonzero(tag == i)
+            if not len(ids):
+                continue
+            nodes, local = np.unique(self.cells[ids], return_inverse=True)
+            name = _file_name(region, written)
+            written.add(name)
+            label = f"region {i} = {region}" + (f" (material {self.materials[region]})"
+                                                 if region in self.materials else "")
+            _write_vtu(folder / name, self.points[nodes], local.reshape(-1, self.cells.shape[1]),
+                       {"displacement": self.displacement[nodes], "mesh_node_id": nodes.astype(np.int64)},
+                       {**{k: np.asarray(v)[ids] for k, v in self.cell_data.items()},
+                        "mesh_cell_id": ids.astype(np.int64)},
+                       {label: i, **self._load_field_data(frame, force_N)})
+            rows.append(f'    <DataSet index="{len(rows)}" name={quoteattr(region)} '
+                        f'file={quoteattr(f"{folder.name}/{name}")}/>')
+        for stale in folder.glob("*.vtu"):  # regions of an earlier run into the same folder
+            if stale.name not in written:
+                stale.unlink()
+        text = ('<?xml version="1.0"?>\n<!-- needletissue: one block per region, named by the region; '
+                'pieces relative to this file -->\n<VTKFile type="vtkMultiBlockDataSet" version="1.0" '
+                'byte_order="LittleEndian">\n  <vtkMultiBlockDataSet>\n' + "\n".join(rows)
+                + "\n  </vtkMultiBlockDataSet>\n</VTKFile>\n")
+        return write_atomic(path, text)
+
+
+def _file_name(region: str, taken: set) -> str:
+    """A portable file name for a region's piece (letters, digits, _ - . only), unique in its folder."""
+    import re
+
+    stem = re.sub(r"[^A-Za-z0-9_.-]", "_", region).strip(".") or "region"
+    name, k = f"{stem}.vtu", 1
+    while name in taken:
+        k += 1
+        name = f"{stem}_{k}.vtu"
+    return name
+
+
+def _write_vtu(path: Path, points, cells, point_data: dict, cell_data: dict, field_data: dict) -> Path:
+    """meshio VTU (binary) with a VTK FieldData block, written atomically (mode from the umask)."""
+    import meshio
+
+    cell_type = "tetra" if cells.shape[1] == 4 else "tetra10"
+    m = meshio.Mesh(points, [(cell_type, cells)], point_data=point_data,
+                    cell_data={k: [v] for k, v in cell_data.items()})
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.partial.vtu")
+    try:
+        meshio.write(tmp, m, binary=True)
+        write_atomic(path, _with_field_data(tmp.read_bytes(), field_data))
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
 
 
 def _with_field_data(xml: bytes, values: dict[str, float]) -> bytes:
@@ -157,8 +219,10 @@ def _with_field_data(xml: bytes, values: dict[str, float]) -> bytes:
 
 
 def write_series(path, steps: list[tuple[float, str]]) -> Path:
-    """ParaView .pvd collection: one VTU per load, the force (N) as ParaView's time (steps: (force, file
-    relative to the .pvd's folder))."""
+    """ParaView .pvd collection: one file per load, the force (N) as ParaView's time (steps: (force, file
+    relative to the .pvd's folder)). The models list the .vtm of each load (FEResult.write_blocks): in
+    ParaView the regions are then named blocks, switched on and off in the Multiblock Inspector and
+    extracted by name, at every force, instead of thresholds on an integer tag."""
     from xml.sax.saxutils import quoteattr
 
     rows = "\n".join(f'    <DataSet timestep="{t!r}" part="0" file={quoteattr(str(f))}/>' for t, f in steps)
@@ -186,7 +250,8 @@ def principal_stretches(F: np.ndarray) -> np.ndarray:
 
 
 def write_results(out_dir, results: list[FEResult], config=None, vtu: bool = True, prefix: str = "fe") -> dict:
-    """Write one VTU per load factor (`{prefix}_<k>.vtu`), and config.toml + versions.json +
+    """Write one VTU per load factor (`{prefix}_<k>.vtu`, with its per-region .vtm), the series
+    `{prefix}.pvd` over the .vtm files, and config.toml + versions.json +
     results.json (`{"results": [FEResult.to_dict(), ...], "vtu": [...]}`) into out_dir. Atomic."""
     from needletissue.runinfo import write_run_files
 
@@ -195,7 +260,8 @@ def write_results(out_dir, results: list[FEResult], config=None, vtu: bool = Tru
     if vtu:
         for k, r in enumerate(results):
             files.append(r.write_vtu(out_dir / f"{prefix}_{k}.vtu").name)
-        write_series(out_dir / f"{prefix}.pvd", [(r.load_factor, f) for r, f in zip(results, files)])
+        write_series(out_dir / f"{prefix}.pvd", [(r.load_factor, str(Path(f).with_suffix(".vtm")))
+                                                for r, f in zip(results, files)])
     payload = {"results": [r.to_dict() for r in results], "vtu": files}
     write_run_files(out_dir, config if config is not None else {}, payload)
     return payload

@@ -18,7 +18,10 @@ th{background:#eee} td.l,th.l{text-align:left}
 .ok{color:#080}.failed{color:#b00}.skipped{color:#777}
 img{max-width:100%;border:1px solid #ddd;margin:4px 0}
 pre{background:#f6f6f6;padding:8px;overflow-x:auto;font-size:0.85em}
-figure{display:inline-block;margin:6px;vertical-align:top;max-width:min(520px,100%)}
+figure{display:block;margin:1.2em 0;max-width:100%}
+figure img{width:100%;height:auto;display:block}
+figcaption{font-size:0.9em;color:#333;margin-top:4px;overflow-wrap:anywhere}
+figcaption code{color:#666}
 """
 
 
@@ -31,9 +34,15 @@ def _fmt(v, digits=4):
 
 
 def _img(path: Path) -> str:
+    """A figure at the column's full width, captioned by what it shows (the PNG's Description) and its file."""
+    from needletissue.report.render import caption
+
     data = base64.b64encode(Path(path).read_bytes()).decode()
-    cap = html.escape(Path(path).name)
-    return f'<figure><img alt="{cap}" src="data:image/png;base64,{data}"><figcaption>{cap}</figcaption></figure>'
+    name = html.escape(Path(path).name)
+    text = html.escape(caption(path))
+    cap = f"{text} <code>{name}</code>" if text else f"<code>{name}</code>"
+    return (f'<figure><img alt="{text or name}" src="data:image/png;base64,{data}">'
+            f"<figcaption>{cap}</figcaption></figure>")
 
 
 def comparison_table(result) -> str:

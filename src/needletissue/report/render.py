@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import io
 import os
-import signal
 from pathlib import Path
 
 import numpy as np
@@ -14,26 +13,43 @@ from needletissue.report.paper import PAPER
 from needletissue.runinfo import write_atomic
 
 
-def render_vtu(vtu: str | Path, png: str | Path, title: str, scale: float = 1.0) -> Path:
-    """Outer surface of the deformed mesh (true scale unless `scale`), coloured by |u| in mm."""
+def render_vtu(vtu: str | Path, png: str | Path, scene) -> Path:
+    """A result VTU drawn as models.render draws it (scene: models.render.RenderScene): bone opaque, tissue
+    translucent, needles and clamp by |u|, undeformed outline, force arrow, axes, colour bar beside."""
     os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
-    import pyvista as pv
+    from needletissue.models.render import render_vtu as render
 
-    grid = pv.read(str(vtu))
-    u = np.asarray(grid.point_data["displacement"])
-    grid.point_data["|u| (mm)"] = np.linalg.norm(u, axis=1)
-    surf = grid.extract_surface(nonlinear_subdivision=0)
-    surf = surf.warp_by_vector("displacement", factor=scale)
-    p = pv.Plotter(off_screen=True, window_size=(1200, 900))
-    p.add_mesh(surf, scalars="|u| (mm)", cmap="viridis", show_edges=False)
-    p.add_text(title, font_size=10)
-    p.view_isometric()
-    tmp = Path(png).with_name(f".{Path(png).stem}.partial.png")
-    p.screenshot(str(tmp))
-    p.close()
-    write_atomic(png, tmp.read_bytes())
-    tmp.unlink()
-    return Path(png)
+    return render(vtu, png, scene)
+
+
+def caption(png: str | Path) -> str:
+    """A PNG's caption: its "Description" text (the figure writers put what the figure shows there), or
+    "" when it has none."""
+    try:
+        from PIL import Image
+
+        with Image.open(png) as im:
+            return str(getattr(im, "text", {}).get("Description", ""))
+    except Exception:  # not a PNG we can read: the file name stands as the caption
+        return ""
+
+
+def describe(png: str | Path, text: str) -> Path:
+    """Write `text` into a PNG's "Description" (the report's caption; it travels with a shared PNG).
+    The pixels are unchanged; rewritten atomically."""
+    from PIL import Image
+    from PIL.PngImagePlugin import PngInfo
+
+    with Image.open(png) as im:
+        im.load()
+        info = PngInfo()
+        for k, v in getattr(im, "text", {}).items():
+            if k != "Description":
+                info.add_itxt(k, v)
+        info.add_itxt("Description", text)
+        buf = io.BytesIO()
+        im.save(buf, format="png", pnginfo=info)
+    return write_atomic(png, buf.getvalue())
 
 
 def plot_theory_vs_fe(results: list[dict], path: str | Path, title: str, dpi: int = 110) -> Path:
@@ -61,31 +77,18 @@ def plot_theory_vs_fe(results: list[dict], path: str | Path, title: str, dpi: in
     ax.legend(fontsize=8)
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
+    text = (f"{title}: maximum needle deformation (FE) and Ritz tip deflection against the reduction force "
+            f"({', '.join(f'{x:g}' for x in f)} N), with the paper's FE (x) and Ritz (+) values.")
+    fig.savefig(buf, format="png", dpi=dpi, metadata={"Description": text})
     plt.close(fig)
     return write_atomic(path, buf.getvalue())
 
 
-def isolated(fn, *args):
-    """Run fn(*args) in a fresh process: a crash in VTK's native code cannot take the caller down."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-    from concurrent.futures.process import BrokenProcessPool
-
-    # Native libraries (ITK, VTK) may reset SIGPIPE to its default; a child that dies would then
-    # kill this process through the closed pipe instead of raising BrokenProcessPool.
-    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
-
-    with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
-        try:
-            return pool.submit(fn, *args).result()
-        except BrokenProcessPool:
-            raise RuntimeError(f"{getattr(fn, '__name__', fn)} crashed (native code)") from None
-
-
-def try_render(vtu, png, title, notes: list, figures: list) -> None:
+def try_render(vtu, png, scene, notes: list, figures: list) -> None:
     """Render in a child process; on a crash add a note instead of a figure."""
+    from needletissue.models.render import isolated
+
     try:
-        figures.append(isolated(render_vtu, vtu, png, title))
+        figures.append(isolated(render_vtu, vtu, png, scene))
     except Exception as exc:  # the numbers stand without the picture
         notes.append(f"render of {Path(vtu).name} failed: {exc}")

@@ -39,6 +39,10 @@ def materials_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
         data = MaterialCurves([curves.curve(n, "uniaxial", c.stretch_max, c.points).to_json() for n in c.names])
     fig = d / "stress_stretch_uniaxial.png"
     plot.plot_curves(tuple(c.names), "uniaxial", stretch_max=c.stretch_max, out=fig)
+    from needletissue.report.render import describe
+
+    describe(fig, f"Nominal stress (MPa) against stretch in uniaxial tension and compression of "
+                  f"{', '.join(c.names)} (closed form); shaded: the Drucker-stable range (paper Fig. 3).")
     import matplotlib.pyplot as plt
 
     plt.close("all")
@@ -65,6 +69,10 @@ def traction_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
         r = traction.run(traction.TractionConfig(material=m))
         fig = d / f"traction_{m}.png"
         traction.plot(r, fig)
+        from needletissue.report.render import describe
+
+        describe(fig, f"Traction validation, {m}: nominal stress against the pulled displacement, FE block "
+                      "(points) and closed form (line) (paper Sec. 3.2).")
         results.append(r.to_dict())
         figs.append(fig)
         comps.append(Comparison(f"Traction validation RMSE, {m} (Eq. 16)", r.rmse_MPa, "MPa",
@@ -104,6 +112,11 @@ def ritz_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     import matplotlib.pyplot as plt
 
     plt.close(fig)
+    from needletissue.report.render import describe
+
+    describe(d / "ritz_deflection_fig5.png", f"Rayleigh-Ritz needle deflection v(z) along the needle at "
+             f"{', '.join(f'{r.force_N:g}' for r in res)} N (1 needle, free length {model.free_length_mm:g} mm; "
+             "paper Fig. 5).")
     curves = {}
     for r in res:
         z, v = r.curve(101)
@@ -162,7 +175,9 @@ def plot_region_deformation(results: list[dict], path, title: str, dpi: int = 11
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
+    forces = ", ".join(f"{r['force_N']:g}" for r in results)
+    text = f"{title}, at {forces} N: maximum displacement |u| (mm) of each region."
+    fig.savefig(buf, format="png", dpi=dpi, metadata={"Description": text})
     plt.close(fig)
     return write_atomic(path, buf.getvalue())
 
@@ -197,7 +212,8 @@ def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     for r in res.results:
         files.append(d / f"needle_{r.force_N:g}N.vtu")
         r.fe.write_vtu(files[-1], frame=FRAME, force_N=r.force_N)
-    files.append(write_series(d / "needle.pvd", [(r.force_N, f.name) for r, f in zip(res.results, files)]))
+    files += [f.with_suffix(".vtm") for f in files]  # beside each VTU: its regions as named blocks
+    files.append(write_series(d / "needle.pvd", [(r.force_N, f"needle_{r.force_N:g}N.vtm") for r in res.results]))
     notes = [f"mesh: {res.mesh['tetrahedra']:,} tetrahedra (order {res.mesh['order']}, {res.mesh['dofs']:,} dofs), "
              f"wall time {res.wall_time_s:.1f} s"]
     notes += drucker_notes(data["results"])
@@ -206,8 +222,13 @@ def needle_fe_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
                               f"Needle FE model ({c.needles} needle(s)) vs Ritz and the paper", cfg.report.dpi),
             plot_region_deformation(data["results"], d / "needle_fe_region_deformation.png",
                                     "Needle FE model: maximum deformation per region", cfg.report.dpi)]
-    try_render(d / f"needle_{res.results[-1].force_N:g}N.vtu", d / "needle_deformed.png", f"needle FE model, {res.results[-1].force_N:g} N "
-               "(true scale), |u| in mm", notes, figs)
+    from needletissue.models.render import RenderScene
+
+    top = res.results[-1].force_N
+    try_render(d / f"needle_{top:g}N.vtu", d / "needle_deformed.png",
+               RenderScene(f"Needle FE model, {c.needles} needle{'s' if c.needles > 1 else ''}, {top:g} N",
+                           res.config.direction,
+                           load_point_mm=tuple(res.config.load_point)), notes, figs)
     # Not like for like with any FE number of the paper (its FE model is the anatomical one, two needles):
     # no paper column here, the paper's value in the note; the anatomical rows carry the comparison.
     comps = []
@@ -366,7 +387,7 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     res = run_pelvis_model(PelvisConfig(source=c.source, ct=ct, labels=labels, forces=list(c.forces_N),
                                         mesh_size=c.mesh_size_mm, out=str(d), figures=False))
     data = res.to_dict()
-    files = sorted(d.glob("*.vtu")) + sorted(d.glob("*.pvd"))
+    files = sorted(d.glob("*.vtu")) + sorted(d.glob("*.vtm")) + sorted(d.glob("*.pvd"))
     notes = [f"mesh: {res.mesh.get('tetrahedra', 0):,} tetrahedra, wall time {res.wall_time_s:.1f} s", *res.notes]
     notes += drucker_notes(data["results"])
     figs = [plot_theory_vs_fe(data["results"], d / "pelvis_max_deformation_vs_force.png",
@@ -375,8 +396,9 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
                                     "Anatomical model: maximum deformation per tissue", cfg.report.dpi)]
     last = d / f"pelvis_{res.results[-1].force_N:g}N.vtu"
     if last.exists():
-        try_render(last, d / "pelvis_deformed.png", f"anatomical model, {res.results[-1].force_N:g} N "
-                   "(true scale), |u| in mm", notes, figs)
+        from needletissue.models.pelvis.report import render_scene
+
+        try_render(last, d / "pelvis_deformed.png", render_scene(data), notes, figs)
     comps = []
     exposed = [t.get("exposed_length_mm") for t in res.thickness if t.get("exposed_length_mm") is not None]
     length = f", exposed length {min(exposed):.0f}-{max(exposed):.0f} mm" if exposed else ""

@@ -342,12 +342,21 @@ def write_outputs(result: NeedleModelResult, out_dir: Path) -> None:
         name = f"needle_{r.force_N:g}N.vtu"
         r.fe.write_vtu(out_dir / name, frame=FRAME, force_N=r.force_N)
         files[f"vtu_{r.force_N:g}N"] = name
-    files["series"] = write_series(out_dir / "needle.pvd", [(r.force_N, files[f"vtu_{r.force_N:g}N"])
+        files[f"vtm_{r.force_N:g}N"] = Path(name).with_suffix(".vtm").name  # the same, one block per region
+    files["series"] = write_series(out_dir / "needle.pvd", [(r.force_N, files[f"vtm_{r.force_N:g}N"])
                                                           for r in result.results]).name
-    from needletissue.models.needle.plot import plot_deflection_curves, plot_deformed
+    from needletissue.models.needle.plot import plot_deflection_curves, scene
+    from needletissue.models.render import isolated, render_vtu
 
-    files["figure_deformed"] = plot_deformed(result, out_dir / "needle_deformed.png").name
     files["figure_deflection"] = plot_deflection_curves(result, out_dir / "needle_deflection.png").name
+    try:  # from the VTU just written, in a child process: a VTK crash costs the picture, not the run
+        png = isolated(render_vtu, out_dir / files[f"vtu_{result.results[-1].force_N:g}N"],
+                       out_dir / "needle_deformed.png", scene(result))
+        files["figure_deformed"] = Path(png).name
+    except Exception as exc:  # the numbers stand without the picture
+        import warnings
+
+        warnings.warn(f"needle_deformed.png not written: {type(exc).__name__}: {exc}", stacklevel=2)
     result.files = files
     record = {"needle_model": _config_dict(result.config)}
     contact = result.extra.get("contact")

@@ -10,37 +10,30 @@ import numpy as np
 
 
 def plot_deformed(result, path: Path, scale: float = 1.0) -> Path:
-    """Deformed model at the largest force, true scale, coloured by |u| (mm); a clip at y = 0
-    shows the needles inside the tissue. Rendered off-screen and written atomically."""
-    os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
-    import pyvista as pv
-
-    from needletissue.runinfo import write_atomic
+    """Deformed model at the largest force (models.render: bone opaque, tissue translucent, needles and
+    clamp by |u|, undeformed needle axes and clamp, force arrow at the load point, axes with the frame,
+    colour bar beside the model). Rendered off-screen and written atomically."""
+    from needletissue.models.needle.model import FRAME
+    from needletissue.models.render import Regions, build, grid_from_arrays, render
 
     r = result.results[-1]
     fe = r.fe
-    cells = fe.cells[:, :4]
-    grid = pv.UnstructuredGrid({pv.CellType.TETRA: cells}, fe.points)
-    grid.point_data["|u| (mm)"] = np.linalg.norm(fe.displacement, axis=1)
-    grid.point_data["u"] = fe.displacement
-    grid.cell_data["region"] = fe.cell_data["region"]
-    # Cut at y = 0 in the reference configuration (shows the needles inside the tissue), then warp.
-    clipped = grid.clip(normal="y", origin=(0, 0, 0), invert=False, crinkle=True).warp_by_vector("u", factor=scale)
-    pl = pv.Plotter(off_screen=True, window_size=(1400, 1000))
-    pl.add_mesh(clipped, scalars="|u| (mm)", cmap="viridis", show_edges=False,
-                scalar_bar_args={"vertical": True, "position_x": 0.88, "position_y": 0.2})
-    pl.add_mesh(clipped.extract_feature_edges(), color="black", line_width=0.5, opacity=0.3)
-    pl.add_text(f"{r.force_N:g} N, deformed x{scale:g}: max needle deformation "
-                f"{r.max_needle_deformation_mm:.2f} mm", font_size=12)
-    pl.camera_position = "xz"
-    pl.camera.azimuth = 25
-    pl.camera.elevation = 15
-    tmp = path.with_name(f".{path.stem}.partial.png")
-    pl.screenshot(str(tmp))
-    pl.close()
-    write_atomic(path, tmp.read_bytes())
-    tmp.unlink()
-    return path
+    grid = grid_from_arrays(fe.points, fe.cells, fe.displacement, fe.cell_data["region"])
+    regions = Regions({i: n for n, i in fe.region_tags.items()},
+                      {fe.region_tags[n]: m for n, m in fe.materials.items() if n in fe.region_tags})
+    return render(build(grid, regions, scene(result, scale), r.force_N, FRAME), path)
+
+
+def scene(result, scale: float = 1.0):
+    """The static render's scene of a needle model result at its largest force: the force along the
+    configured direction at the load point (gripper centre + load_offset), the needles along z."""
+    from needletissue.models.render import RenderScene
+
+    r = result.results[-1]
+    g = result.config.geometry
+    return RenderScene(f"Needle FE model, {g.needles} needle{'s' if g.needles > 1 else ''}, {r.force_N:g} N, "
+                       f"max needle deformation {r.max_needle_deformation_mm:.2f} mm", result.config.direction,
+                       load_point_mm=tuple(result.config.load_point), scale=scale)
 
 
 def plot_deflection_curves(result, path: Path) -> Path:
@@ -76,7 +69,12 @@ def plot_deflection_curves(result, path: Path) -> Path:
     ax.grid(alpha=0.3)
     fig.tight_layout()
     tmp = path.with_name(f".{path.stem}.partial.png")
-    fig.savefig(tmp, dpi=150)
+    forces = ", ".join(f"{r.force_N:g}" for r in result.results)
+    fig.savefig(tmp, dpi=150, metadata={"Description": (
+        f"Needle FE model ({g.needles} needle{'s' if g.needles > 1 else ''}, free length {g.free_length:g} mm): "
+        f"deflection along the force of each needle axis (FE, solid) against z from the bone surface at {forces} "
+        "N, with the Rayleigh-Ritz v(z) at the full force (dashed) and per needle (dotted); grey lines: layer "
+        "interfaces; shaded: the clamp.")})
     plt.close(fig)
     write_atomic(path, tmp.read_bytes())
     tmp.unlink()

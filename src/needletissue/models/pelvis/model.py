@@ -402,7 +402,7 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
                                     np.full(len(pm_m.cells[1].data), -1, np.int32)]
         out_dir.mkdir(parents=True, exist_ok=True)
         meshio.write(out_dir / "pelvis_mesh.vtu", pm_m)
-        write_series(out_dir / "pelvis.pvd", [(x.force_N, Path(x.vtu).name) for x in loads if x.vtu])
+        write_series(out_dir / "pelvis.pvd", [(x.force_N, Path(x.vtu).with_suffix(".vtm").name) for x in loads if x.vtu])
         res.wall_time_s = time.perf_counter() - t0
         from needletissue.models.pelvis.report import comparison_markdown, render_in_subprocess
         from needletissue.runinfo import write_atomic

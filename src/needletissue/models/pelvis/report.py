@@ -1,4 +1,5 @@
-"""Figures of the anatomical pelvis model: off-screen renders (PyVista) and comparison plots (Matplotlib)."""
+"""Figures of the anatomical pelvis model: the off-screen render (models.render) and comparison plots
+(Matplotlib)."""
 
 from __future__ import annotations
 
@@ -8,55 +9,18 @@ from pathlib import Path
 import numpy as np
 
 
-def figures(res, fe_last, mesh, out_dir) -> list[str]:
-    """pelvis_deformation.png (section through the needles, |u| at the largest force),
-    pelvis_needle_vs_force.png (FE, Ritz, paper), pelvis_tissue_deformation.png (per region)."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    files = [_render(res, fe_last, mesh, out_dir / "pelvis_deformation.png")]
-    files += _plots(res, out_dir)
-    return [str(f) for f in files]
+def render_scene(data: dict):
+    """The static render's scene (models.render.RenderScene) of a pelvis result (PelvisResult.to_dict or
+    pelvis_results.json): the force along force_vector_unit on the clamp, the view across needle 1 and the
+    force, framed on the needle site (the anatomy around it as context)."""
+    from needletissue.models.render import RenderScene
 
-
-def _render(res, fe_last, mesh, path):
-    os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
-    import pyvista as pv
-
-    pv.OFF_SCREEN = True
-    cells = mesh.cells
-    ctype = pv.CellType.QUADRATIC_TETRA if cells.shape[1] == 10 else pv.CellType.TETRA
-    conn = np.hstack([np.full((len(cells), 1), cells.shape[1]), cells]).ravel()
-    grid = pv.UnstructuredGrid(conn, np.full(len(cells), ctype, np.uint8), mesh.points)
-    u = fe_last.displacement
-    grid.point_data["|u| mm"] = np.linalg.norm(u, axis=1)
-    tag = np.zeros(len(cells), int)
-    steel_tags = []
-    for i, (name, ids) in enumerate(mesh.regions.items()):
-        tag[ids] = i
-        if str(name).startswith(("needle", "clamp")):
-            steel_tags.append(i)
-    grid.cell_data["region"] = tag
-    grid = grid.linear_copy()
-    axes = np.array(res.site["needle_axes_mm"], float)
-    d = np.asarray(res.site["direction"], float)
-    f = np.asarray(res.force_vector_unit, float)
-    normal = np.cross(d, f)
-    normal /= np.linalg.norm(normal)
-    on_needle = axes[0].mean(axis=0)
-    # Outer surface of the anatomy (translucent) and the needles + clamp (opaque), coloured by |u|.
-    # (Clipping/slicing the quadratic grid segfaulted in VTK 9.x on this machine; surfaces do not.)
-    body = grid.extract_surface(algorithm="dataset_surface")
-    steel = grid.extract_cells(np.nonzero(np.isin(tag, steel_tags))[0]).extract_surface(algorithm="dataset_surface")
-    p = pv.Plotter(off_screen=True, window_size=(1400, 1000))
-    p.add_mesh(body, scalars="|u| mm", cmap="viridis", opacity=0.25, show_scalar_bar=False)
-    p.add_mesh(steel, scalars="|u| mm", cmap="viridis",
-               scalar_bar_args={"title": f"|u| (mm) at {res.results[-1].force_N:.0f} N"})
-    p.camera_position = [tuple(on_needle + 260 * normal), tuple(on_needle), (0, 0, 1)]
-    p.add_text("model surface (translucent), needles and clamp; view normal to the needle-force plane",
-               font_size=10)
-    p.screenshot(str(path))
-    p.close()
-    return path
+    base, top = (np.asarray(p, float) for p in data["site"]["needle_axes_mm"][0])
+    f = data["results"][-1]["force_N"]
+    source = str(data["site"].get("source") or "").split(":")[0].upper()  # "ct:<files>" -> CT
+    return RenderScene(f"Anatomical model{f' ({source})' if source else ''}, 2 needles and a clamp, {f:g} N",
+                       tuple(data["force_vector_unit"]), tuple(top - base), focus_steel=True,
+                       cut=True)
 
 
 def _plots(res, out_dir):
@@ -80,7 +44,9 @@ def _plots(res, out_dir):
     ax.legend()
     f1 = out_dir / "pelvis_needle_vs_force.png"
     fig.tight_layout()
-    fig.savefig(f1, dpi=130)
+    fig.savefig(f1, dpi=130, metadata={"Description": "Anatomical model: maximum needle deformation (FE) and "
+                                                      "Ritz tip deflection with the measured layers against the "
+                                                      "reduction force, with the paper's values."})
     plt.close(fig)
 
     last = res.results[-1].max_deformation_mm
@@ -95,7 +61,8 @@ def _plots(res, out_dir):
     ax.grid(alpha=0.3, axis="x")
     f2 = out_dir / "pelvis_tissue_deformation.png"
     fig.tight_layout()
-    fig.savefig(f2, dpi=130)
+    fig.savefig(f2, dpi=130, metadata={"Description": f"Anatomical model: maximum deformation |u| (mm) of each "
+                                                      f"region at {res.results[-1].force_N:.0f} N."})
     plt.close(fig)
     return [f1, f2]
 
@@ -139,22 +106,14 @@ def figures_from_files(out_dir) -> list[str]:
     import json
     from types import SimpleNamespace as NS
 
-    import meshio
+    from needletissue.models.render import render_vtu
 
     out_dir = Path(out_dir)
     d = json.loads((out_dir / "pelvis_results.json").read_text(encoding="utf-8"))
-    last = d["results"][-1]
-    m = meshio.read(out_dir / last["vtu"])  # relative to out_dir (relocatable); absolute in old files
-    cells = m.cells[0].data
-    reg = np.asarray(m.cell_data["region"][0])
-    tags = d["mesh"].get("region_tags") or {}
-    names = {int(v): k for k, v in tags.items()}
-    mesh = NS(points=m.points, cells=cells,
-              regions={names.get(int(i), str(i)): np.nonzero(reg == i)[0] for i in np.unique(reg)})
-    res = NS(site=d["site"], force_vector_unit=d["force_vector_unit"],
-             results=[NS(force_N=r["force_N"], max_needle_deformation_mm=r["max_needle_deformation_mm"],
+    res = NS(results=[NS(force_N=r["force_N"], max_needle_deformation_mm=r["max_needle_deformation_mm"],
                          ritz_tip_deflection_mm=r["ritz_tip_deflection_mm"],
                          max_deformation_mm=r["max_deformation_mm"]) for r in d["results"]])
     files = _plots(res, out_dir)  # first: a VTK crash in the render must not lose the plots
-    files.append(_render(res, NS(displacement=m.point_data["displacement"]), mesh, out_dir / "pelvis_deformation.png"))
+    # relative to out_dir (relocatable); absolute in old files
+    files.append(render_vtu(out_dir / d["results"][-1]["vtu"], out_dir / "pelvis_deformation.png", render_scene(d)))
     return [str(f) for f in files]
