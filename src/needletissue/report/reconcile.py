@@ -89,7 +89,7 @@ class Step:
     """One model run of the chain: its values at each force and their distance from the paper's FE."""
 
     name: str
-    model: str  # frame | ritz | FE (this run)
+    model: str  # frame | ritz | FE (the anatomical run of this reproduce)
     setup: str
     change: str  # the one assumption changed from the previous step
     forces_N: list
@@ -149,7 +149,8 @@ class Reconciliation:
     paper_free_length_mm: float  # the Ritz model's free length, the chain's end
 
     def to_json(self) -> dict:
-        return {"paper_free_length_mm": self.paper_free_length_mm, "chain": [s.to_json() for s in self.chain], "checks": [s.to_json() for s in self.checks],
+        return {"paper_free_length_mm": self.paper_free_length_mm, "chain": [s.to_json() for s in self.chain],
+                "checks": [s.to_json() for s in self.checks],
                 "chain_note": self.chain_note, "conclusion": self.conclusion, "interfaces": self.interfaces,
                 "interfaces_note": self.interfaces_note, "ratio_300_vs_100N": [r.to_json() for r in self.ratio],
                 "ratio_conclusion": self.ratio_conclusion,
@@ -191,7 +192,7 @@ def chain(setup: AnatomicalSetup, ritz_model, order=3) -> tuple[list, list, dict
     from needletissue import ritz
 
     forces = list(setup.fe_forces_N)
-    steps = [Step("anatomical FE (this run)", "FE (this run)",
+    steps = [Step("anatomical FE (this run)", "FE",
                   f"2 pins in a clamp, {'/'.join(f'{f / 2:g}' for f in forces)} N per pin, exposed length "
                   f"{setup.free_length_mm:.3g} mm, measured layers, bonded interfaces", "start", forces,
                   list(setup.fe_max_needle_mm))]
@@ -249,7 +250,7 @@ def _mm(xs) -> str:
 
 def chain_conclusion(steps: list, checks: list) -> str:
     """Which step comes closest to the paper's FE numbers, read from the numbers."""
-    runs = [s for s in steps + checks if s.model != "FE (this run)" and any(r is not None for r in s.relative_percent)]
+    runs = [s for s in steps + checks if s.model != "FE" and any(r is not None for r in s.relative_percent)]
     if not runs:
         return ""
     worst = {id(s): max(abs(r) for r in s.relative_percent if r is not None) for s in runs}
@@ -258,8 +259,8 @@ def chain_conclusion(steps: list, checks: list) -> str:
     text = (f"Closest to the paper's FE ({_mm(best.paper_mm)} mm at {forces} N): '{best.name}' ({best.model}; "
             f"{best.setup}): {_mm(best.values_mm)} mm, {_pct(best.relative_percent)} from the paper; "
             + ("within" if best.agrees else "not within") + f" {AGREEMENT_PERCENT:g} % at every force.")
-    two = [s for s in runs if s.model == "frame" and s.setup.startswith(_pins(2)[:6])]
-    one = [s for s in runs if s.model != "FE (this run)" and s not in two]
+    two = [s for s in runs if s.model == "frame" and s.setup.startswith("2 pins")]
+    one = [s for s in runs if s.model != "FE" and s not in two]
     if two and one:
         w2 = min(worst[id(s)] for s in two)
         w1 = min(worst[id(s)] for s in one)
@@ -419,9 +420,9 @@ def _reason(c, rec: Reconciliation, pelvis: dict | None) -> str:
         if None in (fr, one, rig, two):
             return ""
         p = c.paper
-        return (f"measured (Reconciliation): the frame model of this setup gives {fr:.2f} mm (FE {c.ours:.2f}); with one "
-                f"pin carrying the whole {f:g} N, {one:.2f} mm (x{one / fr:.2f}); with the paper's {rec.paper_free_length_mm:g} mm "
-                f"bare lever and Table 1 layers, {pap:.2f} mm; with a rigid root, {rig:.2f} mm "
+        return (f"measured (Reconciliation): the frame model of this setup gives {fr:.2f} mm (FE {c.ours:.2f}); with "
+                f"one pin carrying the whole {f:g} N, {one:.2f} mm (x{one / fr:.2f}); with the paper's "
+                f"{rec.paper_free_length_mm:g} mm bare lever and Table 1 layers, {pap:.2f} mm; with a rigid root, {rig:.2f} mm "
                 f"({100 * (rig / p - 1):+.0f} % from the paper) - two pins sharing the force there give {two:.2f} mm "
                 f"({100 * (two / p - 1):+.0f} %). The gap is the paper's one pin carrying the force at a longer lever.")
     if key == "theory_fe_difference_300N_mm" and pelvis:
