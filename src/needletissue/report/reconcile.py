@@ -271,6 +271,11 @@ def chain_conclusion(steps: list, checks: list) -> str:
         else:
             text += (f" A setup with two pins sharing the force comes as close ({w2:.0f} %) as one pin carrying it "
                      f"({w1:.0f} %): the number of pins does not decide it here.")
+    past = [(f, u) for f, u in zip(best.forces_N, best.yield_utilisation) if u > 1.0]
+    if past:
+        f, u = past[0]
+        text += (f" That pin is past yield from {f:g} N (elastic-equivalent stress / yield {u:.2f}): the elastic "
+                 "number is what an elastic FE gives; a real pin would bend for good (see the ratio below).")
     paper = best.paper_mm
     if len(paper) == 3 and None not in paper:
         g = paper[2] / paper[0]
