@@ -187,7 +187,7 @@ def test_reproduce_writes_the_reconciliation_without_the_anatomical_model(tmp_pa
     assert row["verdict"].startswith("differs") and row["reason"].startswith("measured")
     assert all(c["reason"] for c in data["comparison_with_paper"] if c["verdict"].startswith("differs"))
     md = (out / "comparison.md").read_text(encoding="utf-8")
-    assert "## Reconciliation" in md and "+250.08 %" in md
+    assert "**Reconciliation.**" in md and "+250.08 %" in md
     assert "id='reconciliation'" in (out / "report.html").read_text(encoding="utf-8")
 
 

@@ -110,7 +110,8 @@ def _ratio_rows(rec: dict):
 def reconciliation_markdown(rec: dict) -> str:
     """results.json's `reconciliation` as Markdown: the chain table, its conclusion, the quoted interfaces
     and the 300/100 N ratio table."""
-    out = ["## Reconciliation", "", rec["chain_note"], ""]
+    # bold titles, not headings: this text sits inside the README's "Comparison with the paper" section
+    out = [f"**Reconciliation.** {rec['chain_note']}", ""]
     if rec["chain"]:
         forces = rec["chain"][0]["forces_N"]
         out += ["| step (model): change, setup | " + " | ".join(f"{f:g} N" for f in forces) + " |",
@@ -119,7 +120,7 @@ def reconciliation_markdown(rec: dict) -> str:
             cells = [f"{_md(v)} mm" + (f" ({_rel(r)})" if r is not None else "") for v, r in vals]
             out.append(f"| **{_md(label)}**: {_md(detail)} | " + " | ".join(cells) + " |")
         out += ["", f"**Conclusion.** {rec['conclusion']}", ""]
-    out += [f"**Interfaces.** {rec['interfaces_note']}", "", "### 300 N over 100 N", "",
+    out += [f"**Interfaces.** {rec['interfaces_note']}", "", "**300 N over 100 N.**", "",
             "| case | 100 N | 300 N | increase |", "|---|---|---|---|"]
     for label, detail, (a, b, inc) in _ratio_rows(rec):
         cells = ["-" if v is None else f"{_md(v)} mm" for v in (a, b)]
