@@ -103,8 +103,8 @@ def _ratio_rows(rec: dict):
     paper = rec["paper"]["ritz_increase_300_vs_100N_percent"]
     yield "paper (Ritz, Sec. 2.3, as printed)", "", (None, None, paper)
     for c in rec["ratio_300_vs_100N"]:
-        yield f"{c['model']}, {'elastic' if c['elastic'] else 'elastic-plastic'}", c["setup"], (*c["values_mm"],
-                                                                                                  c["increase_percent"])
+        yield (f"{c['model']}, {'elastic' if c['elastic'] else 'elastic-plastic'}", c["setup"],
+               (*c["values_mm"], c["increase_percent"]))
 
 
 def reconciliation_markdown(rec: dict) -> str:
@@ -121,7 +121,7 @@ def reconciliation_markdown(rec: dict) -> str:
             out.append(f"| **{_md(label)}**: {_md(detail)} | " + " | ".join(cells) + " |")
         out += ["", f"**Conclusion.** {rec['conclusion']}", ""]
     out += [f"**Interfaces.** {rec['interfaces_note']}", "", "**300 N over 100 N.**", "",
-            "| case | 100 N | 300 N | increase |", "|---|---|---|---|"]
+            "| case (F = 100 N unless stated) | w(F) | w(3F) | increase |", "|---|---|---|---|"]
     for label, detail, (a, b, inc) in _ratio_rows(rec):
         cells = ["-" if v is None else f"{_md(v)} mm" for v in (a, b)]
         out.append(f"| **{_md(label)}**{': ' + _md(detail) if detail else ''} | {cells[0]} | {cells[1]} | "
@@ -146,8 +146,8 @@ def reconciliation_html(rec: dict) -> str:
         out.append("</table><p><small>mm: max needle deflection; %: from the paper's FE.</small></p>")
         out.append(f"<p><b>Conclusion.</b> {e(rec['conclusion'])}</p>")
     out.append(f"<p><b>Interfaces.</b> {e(rec['interfaces_note'])}</p>")
-    out.append("<h3>300 N over 100 N</h3><table class='rec'><tr><th class='l'>case</th><th>100 N</th><th>300 N</th>"
-               "<th>increase</th></tr>")
+    out.append("<h3>300 N over 100 N</h3><table class='rec'><tr><th class='l'>case (F = 100 N unless stated)</th>"
+               "<th>w(F)</th><th>w(3F)</th><th>increase</th></tr>")
     for label, detail, (a, b, inc) in _ratio_rows(rec):
         cls = " class='paper'" if b is None else ""
         cells = "".join(f"<td>{'—' if v is None else _fmt(v) + ' mm'}</td>" for v in (a, b))
