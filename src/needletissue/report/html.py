@@ -21,7 +21,7 @@ pre{background:#f6f6f6;padding:8px;overflow-x:auto;font-size:0.85em}
 figure{display:inline-block;margin:6px;vertical-align:top;max-width:min(520px,100%)}
 table.rec{font-size:0.85em} table.rec td,table.rec th{padding:3px 4px} table.rec td.l{overflow-wrap:anywhere}
 table.rec small{color:#555} tr.paper td{background:#f4f4ff}
-@media (min-width:700px){table.rec td.l{min-width:16em}}
+@media (min-width:700px){table.rec td.l{min-width:16em} table.rec td:not(.l){white-space:nowrap}}
 """
 
 
