@@ -159,6 +159,12 @@ def test_demo_runs_every_stage_and_writes_what_the_readme_says(demo):
     out, p = demo
     data = json.loads((out / "results.json").read_text(encoding="utf-8"))
     assert {k: v["status"] for k, v in data["stages"].items()} == {k: "ok" for k in data["stages"]}
+    # the reconciliation ran its chain, and every row that differs from the paper has a measured reason
+    from needletissue.report.pipeline import NO_REASON
+
+    assert data["reconciliation"]["chain"] and data["reconciliation"]["ratio_300_vs_100N"]
+    differs = [c for c in data["comparison_with_paper"] if c["verdict"].startswith("differs")]
+    assert differs and all(c["reason"] and c["reason"] != NO_REASON for c in differs), differs
     (block,) = [b for b in BLOCKS if b.lang == "console" and b.text.startswith("$ make demo")]
     lines = block.text.strip().splitlines()
     wrote = " ".join(lines[next(i for i, ln in enumerate(lines) if ln.startswith("wrote ")):])

@@ -22,6 +22,9 @@ figure{display:block;margin:1.2em 0;max-width:100%}
 figure img{width:100%;height:auto;display:block}
 figcaption{font-size:0.9em;color:#333;margin-top:4px;overflow-wrap:anywhere}
 figcaption code{color:#666}
+table.rec{font-size:0.85em} table.rec td,table.rec th{padding:3px 4px} table.rec td.l{overflow-wrap:anywhere}
+table.rec small{color:#555} tr.paper td{background:#f4f4ff}
+@media (min-width:700px){table.rec td.l{min-width:16em} table.rec td:not(.l){white-space:nowrap}}
 """
 
 
@@ -54,7 +57,7 @@ def comparison_table(result) -> str:
            '<th class="l">paper source / note</th></tr>']
     for c in rows:
         j = c.to_json()
-        src = " — ".join(x for x in (j["paper_source"], c.note) if x)
+        src = " — ".join(x for x in (j["paper_source"], c.note, f"Reason: {c.reason}" if c.reason else "") if x)
         out.append(f'<tr><td class="l">{html.escape(c.quantity)}</td><td>{_fmt(c.ours)}</td>'
                    f'<td>{_fmt(j["paper"])}</td><td>{_fmt(j["difference"], 3)}</td>'
                    f'<td>{_fmt(j["relative_difference_percent"], 3)}</td><td class="l">{html.escape(c.unit)}</td>'
@@ -72,17 +75,95 @@ def _md(v) -> str:
     return str(v).replace("|", "\\|")
 
 
-def comparison_markdown(rows: list[dict]) -> str:
-    """The comparison with the paper as a Markdown table, from results.json's `comparison_with_paper`
-    (the README's table is this text from a `make demo` run, checked by tests/test_readme.py)."""
+def comparison_markdown(rows: list[dict], reconciliation: dict | None = None) -> str:
+    """The comparison with the paper as a Markdown table, from results.json's `comparison_with_paper`,
+    followed by its `reconciliation` when there is one (the README's table is this text from a `make demo`
+    run, checked by tests/test_readme.py)."""
     out = ["| quantity | this toolkit | paper | verdict | note |", "|---|---|---|---|---|"]
     for r in rows:
         unit = f" {r['unit']}" if r["unit"] and r["ours"] is not None and not isinstance(r["ours"], str) else ""
         paper = "-" if r["paper"] is None else f"{_md(r['paper'])}{unit}"
-        note = " — ".join(x for x in (r.get("paper_source"), r.get("note")) if x)
+        reason = f"Reason: {r['reason']}" if r.get("reason") else ""
+        note = " — ".join(x for x in (r.get("paper_source"), r.get("note"), reason) if x)
         out.append(f"| {_md(r['quantity'])} | {_md(r['ours'])}{unit} | {paper} | {_md(r.get('verdict') or '-')} "
                    f"| {_md(note or '-')} |")
+    if reconciliation:
+        out += ["", reconciliation_markdown(reconciliation)]
     return "\n".join(out) + "\n"
+
+
+def _rel(x) -> str:
+    return "" if x is None else f"{x:+.0f} %"
+
+
+def _chain_rows(rec: dict):
+    """(label, detail, [(value, relative %)]) per row: the paper's FE, the steps, then the checks."""
+    p = rec["paper"]["fe_max_needle_deformation_mm"]
+    steps = rec["chain"] + rec["checks"]
+    forces = steps[0]["forces_N"] if steps else []
+    yield "paper's FE", "the values printed in the paper (Sec. 3.3)", [(p.get(f"{f:g}"), None) for f in forces]
+    for i, s in enumerate(steps):
+        kind = f"{i}." if i < len(rec["chain"]) else "check:"
+        detail = (s["setup"] if s["change"] == "start" else f"change: {s['change']}. Setup: {s['setup']}")
+        yield f"{kind} {s['name']} ({s['model']})", detail, list(zip(s["values_mm"], s["relative_to_paper_percent"]))
+
+
+def _ratio_rows(rec: dict):
+    paper = rec["paper"]["ritz_increase_300_vs_100N_percent"]
+    yield "paper (Ritz, Sec. 2.3, as printed)", "", (None, None, paper)
+    for c in rec["ratio_300_vs_100N"]:
+        yield (f"{c['model']}, {'elastic' if c['elastic'] else 'elastic-plastic'}", c["setup"],
+               (*c["values_mm"], c["increase_percent"]))
+
+
+def reconciliation_markdown(rec: dict) -> str:
+    """results.json's `reconciliation` as Markdown: the chain table, its conclusion, the quoted interfaces
+    and the 300/100 N ratio table."""
+    # bold titles, not headings: this text sits inside the README's "Comparison with the paper" section
+    out = [f"**Reconciliation.** {rec['chain_note']}", ""]
+    if rec["chain"]:
+        forces = rec["chain"][0]["forces_N"]
+        out += ["| step (model): change, setup | " + " | ".join(f"{f:g} N" for f in forces) + " |",
+                "|---" * (len(forces) + 1) + "|"]
+        for label, detail, vals in _chain_rows(rec):
+            cells = [f"{_md(v)} mm" + (f" ({_rel(r)})" if r is not None else "") for v, r in vals]
+            out.append(f"| **{_md(label)}**: {_md(detail)} | " + " | ".join(cells) + " |")
+        out += ["", f"**Conclusion.** {rec['conclusion']}", ""]
+    out += [f"**Interfaces.** {rec['interfaces_note']}", "", "**300 N over 100 N.**", "",
+            "| case (F = 100 N unless stated) | w(F) | w(3F) | increase |", "|---|---|---|---|"]
+    for label, detail, (a, b, inc) in _ratio_rows(rec):
+        cells = ["-" if v is None else f"{_md(v)} mm" for v in (a, b)]
+        out.append(f"| **{_md(label)}**{': ' + _md(detail) if detail else ''} | {cells[0]} | {cells[1]} | "
+                   f"{inc:+.2f} % |")
+    out += ["", f"**Conclusion.** {rec['ratio_conclusion']}"]
+    return "\n".join(out)
+
+
+def reconciliation_html(rec: dict) -> str:
+    """The same as HTML: narrow tables (the long text wraps in the first column; phone width)."""
+    e = html.escape
+    out = ["<h2 id='reconciliation'>Reconciliation</h2>", f"<p>{e(rec['chain_note'])}</p>"]
+    if rec["chain"]:
+        forces = rec["chain"][0]["forces_N"]
+        out.append("<table class='rec'><tr><th class='l'>step (model)</th>"
+                   + "".join(f"<th>{f:g} N</th>" for f in forces) + "</tr>")
+        for label, detail, vals in _chain_rows(rec):
+            cells = "".join(f"<td>{_fmt(v)} mm" + (f"<br><small>{_rel(r)}</small>" if r is not None else "") + "</td>"
+                            for v, r in vals)
+            cls = " class='paper'" if label == "paper's FE" else ""
+            out.append(f"<tr{cls}><td class='l'><b>{e(label)}</b><br><small>{e(detail)}</small></td>{cells}</tr>")
+        out.append("</table><p><small>mm: max needle deflection; %: from the paper's FE.</small></p>")
+        out.append(f"<p><b>Conclusion.</b> {e(rec['conclusion'])}</p>")
+    out.append(f"<p><b>Interfaces.</b> {e(rec['interfaces_note'])}</p>")
+    out.append("<h3>300 N over 100 N</h3><table class='rec'><tr><th class='l'>case (F = 100 N unless stated)</th>"
+               "<th>w(F)</th><th>w(3F)</th><th>increase</th></tr>")
+    for label, detail, (a, b, inc) in _ratio_rows(rec):
+        cls = " class='paper'" if b is None else ""
+        cells = "".join(f"<td>{'—' if v is None else _fmt(v) + ' mm'}</td>" for v in (a, b))
+        small = f"<br><small>{e(detail)}</small>" if detail else ""
+        out.append(f"<tr{cls}><td class='l'><b>{e(label)}</b>{small}</td>{cells}<td>{inc:+.2f} %</td></tr>")
+    out.append(f"</table><p><b>Conclusion.</b> {e(rec['ratio_conclusion'])}</p>")
+    return "\n".join(out)
 
 
 def write_report(run_dir: Path, cfg, result) -> Path:
@@ -105,6 +186,9 @@ def write_report(run_dir: Path, cfg, result) -> Path:
     parts.append(f"</table><p>Total wall time {result.wall_time_s:.1f} s.</p>")
     parts.append("<h2>Reproduced numbers beside the paper</h2>")
     parts.append(comparison_table(result))
+    rec = next((o.result.data for o in result.outcomes if o.name == "reconciliation" and o.result), None)
+    if rec is not None:
+        parts.append(reconciliation_html(rec.to_json()))
     for o in result.outcomes:
         parts.append(f"<h2>{html.escape(o.title)} <small class='{o.status}'>({o.status})</small></h2>")
         if o.status == "failed":

@@ -41,6 +41,7 @@ class Comparison:
     note: str = ""
     tolerance_percent: float | None = AGREEMENT_PERCENT  # "agrees" within this of the paper's value
     limit: float | None = None  # instead: a criterion ours < limit (the paper's RMSE < 0.05 MPa)
+    reason: str = ""  # why it differs from the paper, measured (set by the reconciliation stage)
 
     @property
     def verdict(self) -> str:
@@ -74,7 +75,8 @@ class Comparison:
         return {"quantity": self.quantity, "ours": self.ours, "unit": self.unit, "paper": self.paper,
                 "difference": self.difference, "relative_difference_percent": self.relative_percent,
                 "verdict": self.verdict,
-                "paper_source": PAPER[self.paper_key].source if self.paper_key else None, "note": self.note}
+                "paper_source": PAPER[self.paper_key].source if self.paper_key else None, "note": self.note,
+                "reason": self.reason or None}
 
 
 @dataclass
@@ -87,6 +89,8 @@ class StageResult:
     comparisons: list[Comparison] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     views: list = field(default_factory=list)  # (title, report.viewer.Scene): interactive 3D views
+    # measured reasons for other stages' rows that differ from the paper, by the row's quantity
+    reasons: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -268,16 +272,29 @@ def _stages(cfg, out, tmp, stages, ct, labels, progress, t0, outcomes, write_rep
             ctx.previous[stage.name] = res
             outcomes.append(StageOutcome(stage.name, stage.title, "ok", dt, result=res))
             bar.finish(stage, "ok", f"{dt:.1f} s")
+    _attach_reasons(outcomes)
     result = ReproduceResult(out, outcomes, time.perf_counter() - t0)
     write_atomic(tmp / "config.toml", annotated_toml(cfg))
     write_json(tmp / "versions.json", version_record())
     write_report(tmp, cfg, result)
     payload = results_json(cfg, result, tmp)
     write_json(tmp / "results.json", payload)
-    write_atomic(tmp / "comparison.md", comparison_markdown(payload["comparison_with_paper"]))
+    write_atomic(tmp / "comparison.md", comparison_markdown(payload["comparison_with_paper"], payload["reconciliation"]))
     write_atomic(tmp / MARKER, f"complete {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
     _swap(tmp, out)
     return result
+
+
+NO_REASON = "reason not measured in this run (the reconciliation stage did not run or has no measurement for this row)"
+
+
+def _attach_reasons(outcomes: list[StageOutcome]) -> None:
+    """Every row that differs from the paper gets its measured reason, or says that it has none."""
+    reasons = {k: v for o in outcomes if o.result for k, v in o.result.reasons.items()}
+    for o in outcomes:
+        for c in (o.result.comparisons if o.result else []):
+            if c.verdict.startswith("differs") and not c.reason:
+                c.reason = reasons.get(c.quantity, NO_REASON)
 
 
 def _swap(tmp: Path, out: Path) -> None:
@@ -307,8 +324,9 @@ def results_json(cfg: ReproduceConfig, result: ReproduceResult, run_dir: Path) -
             entry["notes"] = o.result.notes
         stages[o.name] = entry
     comparisons = [c.to_json() for o in result.outcomes if o.result for c in o.result.comparisons]
+    rec = next((o.result.data for o in result.outcomes if o.name == "reconciliation" and o.result), None)
     return {"wall_time_s": result.wall_time_s, "ok": result.ok, "stages": stages,
-            "comparison_with_paper": comparisons}
+            "comparison_with_paper": comparisons, "reconciliation": None if rec is None else rec.to_json()}
 
 
 class _StageProgress:

@@ -307,34 +307,21 @@ def _frame_beside_pelvis(data: dict, comps) -> list[dict]:
     """The frame model fed with what the anatomical run measured along its pins: exposed length (bone
     entry to the needle end), pin spacing across the axis, insertion depth, clamp height, the two
     needles' mean tissue layers, and the force in the pins' frame (z out of the bone along the pins,
-    x from pin 1 to pin 2). The FE's needle maximum includes the (small) motion of the pelvis itself."""
+    x from pin 1 to pin 2; report.reconcile.anatomical_setup). The FE's needle maximum includes the
+    (small) motion of the pelvis itself."""
     import numpy as np
 
     from needletissue import frame
-    from needletissue.frame.model import FE_CALIBRATION, FrameModel
-    from needletissue.ritz import Layer
+    from needletissue.report.reconcile import anatomical_frame_model, anatomical_setup
 
-    site, per = data["site"], data["ritz"]["per_needle"]
-    if len(site["entries_mm"]) != 2:
+    s = anatomical_setup(data)
+    if s is None:
         return []
-    z = -np.asarray(site["direction"], float)
-    z /= np.linalg.norm(z)
-    e1, e2 = (np.asarray(e, float) for e in site["entries_mm"])
-    x = (e2 - e1) - ((e2 - e1) @ z) * z
-    spacing = float(np.linalg.norm(x))
-    x /= spacing
-    y = np.cross(z, x)
-    layers = tuple(Layer(la["name"], float(np.mean([p["model"]["layers"][i]["thickness_mm"] for p in per])),
-                         la["k_N_per_mm2"]) for i, la in enumerate(per[0]["model"]["layers"]))
-    free = float(np.mean([p["model"]["free_length_mm"] for p in per]))
-    model = FrameModel(needles=2, spacing_mm=spacing, diameter_mm=site["needle_diameter_mm"], free_length_mm=free,
-                       depth_mm=site["depth_in_bone_mm"], clamp_length_mm=site["clamp_size_mm"][0],
-                       layers=layers, **FE_CALIBRATION)
-    u = np.asarray(data["force_vector_unit"], float)
+    model = anatomical_frame_model(s)
+    spacing, free, layers = s.spacing_mm, s.free_length_mm, s.layers
     out = []
     for r in data["results"]:
-        f = r["force_N"] * u
-        fr = frame.solve(force=(float(f @ x), float(f @ y), float(f @ z)), model=model)
+        fr = frame.solve(force=tuple(r["force_N"] * np.asarray(s.force_unit)), model=model)
         fe = r["max_needle_deformation_mm"]
         goal = max(0.432, 0.024 * fe)
         comps.append(Comparison(
@@ -433,6 +420,27 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     return StageResult(PelvisFE(data), figures=figs, files=files, comparisons=comps, notes=notes, views=views)
 
 
+# --- reconciliation: which assumptions reproduce the paper's numbers (fast models only) ---------------
+
+
+def reconciliation_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
+    """The chain from the anatomical FE to the paper's setup and the 300/100 N ratio cases, run with the
+    frame and Ritz models (report.reconcile), and the measured reason of every row that differs."""
+    from needletissue.report.reconcile import reconcile, row_reasons
+
+    pelvis = ctx.previous.get("pelvis")
+    data = pelvis.data.result if pelvis is not None else None
+    rec = reconcile(ritz_model(cfg), data, order=cfg.ritz.order)
+    rows = [c for r in ctx.previous.values() for c in r.comparisons]
+    reasons = row_reasons(rows, rec, data)
+    # the tables and conclusions are the report's "Reconciliation" section; here only what the stage did
+    notes = [f"{len(rec.chain) + len(rec.checks)} chain steps and checks, {len(rec.ratio)} ratio cases (frame and "
+             f"Ritz solves); a measured reason for {len(reasons)} of the "
+             f"{sum(c.verdict.startswith('differs') for c in rows)} rows that differ from the paper. The tables and "
+             "conclusions are in the Reconciliation section above."]
+    return StageResult(rec, notes=notes, reasons=reasons)
+
+
 def stage_list() -> list[Stage]:
     """The stages `reproduce` runs, in order. A stage joins this list when its engine is merged."""
     return [
@@ -442,4 +450,8 @@ def stage_list() -> list[Stage]:
         Stage("ritz", "Ritz model, 100-300 N (Fig. 5)", ritz_stage, _on("ritz")),
         Stage("needle_fe", "Needle FE model, theory vs FE", needle_fe_stage, _on("needle_fe"), isolated=True),
         Stage("pelvis", "Anatomical pelvis model", pelvis_stage, _pelvis_enabled, isolated=True),
+        # after every stage whose rows it explains; cheap (frame and Ritz solves, no FE)
+        Stage("reconciliation", "Reconciliation with the paper", reconciliation_stage,
+              lambda cfg, ctx: (True, "") if cfg.ritz.enabled else
+              (False, "needs the Ritz model ([ritz] enabled = false)")),
     ]
