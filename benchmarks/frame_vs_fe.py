@@ -42,6 +42,7 @@ def model_of(rec: dict, **factors) -> FrameModel:
     return FrameModel(needles=int(rec["needles"]), needle_xy=tuple((x, 0.0) for x in rec["needle_x_mm"]),
                       diameter_mm=rec["diameter_mm"], free_length_mm=rec["free_length_mm"],
                       depth_mm=rec["depth_mm"], cortex_mm=rec["cortical_thickness_mm"],
+                      bone_thickness_mm=rec["bone_thickness_mm"],
                       clamp_length_mm=rec["grip_length_mm"], clamp_width_mm=rec["clamp_width_mm"],
                       clamp_overhang_mm=rec["clamp_overhang_mm"], layers=layers,
                       load_point_mm=tuple(rec["load_point_mm"]), **factors)
@@ -105,11 +106,15 @@ def main(argv=None):
     p.add_argument("--data", type=Path, default=HERE / "frame_sweep" / "fe_sweep.json")
     p.add_argument("--calibrate", action="store_true")
     p.add_argument("--fit-tissue", action="store_true", help="fit the tissue factor too")
+    p.add_argument("--params", default=None,
+                   help="comma-separated factors to fit (default: FIT_PARAMS)")
     p.add_argument("--cross-validate", action="store_true",
                    help="leave one configuration out: fit on the others, predict it (out-of-sample errors)")
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args(argv)
     global FIT_PARAMS
+    if a.params:
+        FIT_PARAMS = tuple(x.strip() for x in a.params.split(",") if x.strip())
     if a.fit_tissue:
         FIT_PARAMS = (*FIT_PARAMS, "tissue_factor")
     data = json.loads(a.data.read_text())

@@ -59,10 +59,12 @@ def _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length,
     from needletissue.ritz.model import DEFAULT_LAYERS, Layer
 
     layers = tuple(Layer.parse(t) for t in layer) if layer else DEFAULT_LAYERS
-    if calibrated:
-        foundation_factor, axial_factor, tissue_factor = (FE_CALIBRATION[k] for k in
+    fitted = {}
+    if calibrated:  # every fitted factor (the bone law's cortex_factor too), not only the ones with an option
+        fitted = dict(FE_CALIBRATION)
+        foundation_factor, axial_factor, tissue_factor = (fitted.pop(k) for k in
                                                           ("foundation_factor", "axial_factor", "tissue_factor"))
-    return FrameModel(needles=needles, spacing_mm=spacing, diameter_mm=diameter, free_length_mm=free_length,
+    return FrameModel(**fitted, needles=needles, spacing_mm=spacing, diameter_mm=diameter, free_length_mm=free_length,
                       depth_mm=depth, cortex_mm=cortex, clamp_length_mm=clamp_length, layers=layers,
                       tissue=not no_tissue, root=root, load_point_mm=_triple("--load-point", load_point),
                       foundation_factor=foundation_factor, tissue_factor=tissue_factor,

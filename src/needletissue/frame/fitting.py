@@ -16,7 +16,7 @@ import numpy as np
 from needletissue.errors import InputError
 from needletissue.frame.model import MAX_FACTOR, FrameModel
 
-PARAMS = ("foundation_factor", "axial_factor", "tissue_factor")
+PARAMS = ("foundation_factor", "axial_factor", "tissue_factor", "cortex_factor", "confinement_factor")
 
 
 @dataclass(frozen=True)
