@@ -174,3 +174,28 @@ def test_plate_law_bad_input():
         with pytest.raises(InputError) as e:
             FrameModel(**kw)
         assert e.value.field == name
+
+
+def test_calibration_in_units_of_the_goal_recovers_the_factors():
+    """tolerance=(mm, fraction): residuals divided by max(mm, fraction |measured|); on exact synthetic data
+    from known plate-law factors the fit returns them, and its residuals are those quotients."""
+    from needletissue.frame.fitting import CalibrationPoint, calibration
+
+    truth = dict(cortex_factor=0.7, tissue_factor=0.4)
+    pts = []
+    for n, F in ((1, 60.0), (1, 250.0), (2, 150.0)):
+        base = FrameModel(needles=n)
+        r = frame.solve((0, F, 0), model=base.replace(**truth), error_estimate=False)
+        pts.append(CalibrationPoint(base, (0, F, 0), clamp_displacement_mm=r.clamp_displacement_mm,
+                                    max_needle_deflection_mm=r.max_needle_deflection_mm))
+    c = calibration(pts, params=("cortex_factor", "tissue_factor"), tolerance=(0.432, 0.024))
+    for k, v in truth.items():
+        assert abs(c.params[k] / v - 1) < 1e-3
+    assert c.max_abs_mm < 1e-3
+    # at the physical factors the residual of the max deflection is (model - measured) / max(0.432, 2.4 %)
+    c0 = calibration(pts[:1], params=("tissue_factor",), tolerance=(0.432, 0.024), x0=(0.4,))
+    d = pts[0].max_needle_deflection_mm
+    r1 = frame.solve((0, 60.0, 0), model=FrameModel(needles=1, tissue_factor=c0.params["tissue_factor"]),
+                     error_estimate=False)
+    assert math.isclose(c0.residuals_mm[-1], (r1.max_needle_deflection_mm - d) / max(0.432, 0.024 * d),
+                        rel_tol=1e-6, abs_tol=1e-9)
