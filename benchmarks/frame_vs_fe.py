@@ -5,14 +5,20 @@
 
 Data: `fe_sweep.json` of benchmarks/frame_sweep (schema in its README.md): one record per
 (configuration, force) with the FE inputs and outputs. For each record the frame model is built with
-the same geometry, layers (paper Table 1 k), clamp and load point (the FE's moment about the gripper
-centre is its force acting at `load_point_mm`, statically the same), and compared on
+the same geometry, layers (paper Table 1 k) and clamp, loaded like the FE: the force at the gripper centre
+and the FE's moment about it as a dead moment. (The FE applies the moment as a dead, self-equilibrated
+traction on the gripper faces. Statically that is the force acting at `load_point_mm`, but only in the
+undeformed state: at the clamp rotations of the moment cases (up to 0.67 rad, e00 at 300 N) the force at
+the offset point turns its arm with the clamp and the FE's traction does not; the dead moment is the
+closer like-for-like, 1.4 % against 2.5 % on e00 at 300 N.) Compared on
 - the clamp-centre displacement vector (FE: best rigid motion of the clamp nodes), error |u_frame - u_FE|,
 - the max needle deflection (FE `max_needle_deformation_mm`, the part in the clamp included).
 Goal (issue #14): every point within max(0.432 mm, 2.4 % of the FE value), median below 1 %.
---calibrate: also fit (foundation_factor, axial_factor; with --fit-tissue tissue_factor) to all points by least squares
-(needletissue.frame.calibration) and report the errors with the fitted factors (in-sample: 2 parameters
-on all points) and their 95 % intervals. Runs in seconds.
+--calibrate: also fit the factors (default: tissue_factor alone; --params a,b,... for others) to all points
+by least squares in units of the goal, residual / max(0.432 mm, 2.4 % of the FE value)
+(needletissue.frame.calibration), and report the errors with the fitted factors (in sample) and their
+95 % intervals; --cross-validate: leave one configuration out, fit on the others, predict it. Seconds
+(about 3 min with --cross-validate).
 """
 
 from __future__ import annotations
@@ -30,9 +36,10 @@ from needletissue.ritz.model import DEFAULT_LAYERS, Layer
 
 HERE = Path(__file__).parent
 GOAL_MM, GOAL_REL, GOAL_MEDIAN = 0.432, 0.024, 0.01
-# The tissue factor is not identifiable from configurations whose tissue carries little load (its fit runs
-# to a bound); it stays at its physical value unless --fit-tissue.
-FIT_PARAMS = ("foundation_factor", "axial_factor")
+# With the plate bone law the bone's factors fit close to 1 (beside the tissue factor: cortex_factor 0.967
+# (95 % 0.950-0.984), axial_factor 0.86 (0.74-1.00), docs/frame.md): the bone stays physical and only the
+# tissue springs' factor is fitted.
+FIT_PARAMS = ("tissue_factor",)
 
 
 def model_of(rec: dict, **factors) -> FrameModel:
@@ -42,16 +49,17 @@ def model_of(rec: dict, **factors) -> FrameModel:
     return FrameModel(needles=int(rec["needles"]), needle_xy=tuple((x, 0.0) for x in rec["needle_x_mm"]),
                       diameter_mm=rec["diameter_mm"], free_length_mm=rec["free_length_mm"],
                       depth_mm=rec["depth_mm"], cortex_mm=rec["cortical_thickness_mm"],
+                      bone_thickness_mm=rec["bone_thickness_mm"],
                       clamp_length_mm=rec["grip_length_mm"], clamp_width_mm=rec["clamp_width_mm"],
                       clamp_overhang_mm=rec["clamp_overhang_mm"], layers=layers,
-                      load_point_mm=tuple(rec["load_point_mm"]), **factors)
+                      **factors)  # the load at the gripper centre (the default), the FE's moment about it
 
 
 def compare(records, **factors):
     rows = []
     for rec in records:
         m = model_of(rec, **factors)
-        r = solve(rec["force_vector_N"], None, m)
+        r = solve(rec["force_vector_N"], rec["moment_Nmm"], m)
         u_fe = np.array(rec["clamp_centre_displacement_mm"])
         u = np.array(r.clamp_displacement_mm)
         e_c = float(np.linalg.norm(u - u_fe))
@@ -105,12 +113,16 @@ def main(argv=None):
     p.add_argument("--data", type=Path, default=HERE / "frame_sweep" / "fe_sweep.json")
     p.add_argument("--calibrate", action="store_true")
     p.add_argument("--fit-tissue", action="store_true", help="fit the tissue factor too")
+    p.add_argument("--params", default=None,
+                   help="comma-separated factors to fit (default: FIT_PARAMS)")
     p.add_argument("--cross-validate", action="store_true",
                    help="leave one configuration out: fit on the others, predict it (out-of-sample errors)")
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args(argv)
     global FIT_PARAMS
-    if a.fit_tissue:
+    if a.params:
+        FIT_PARAMS = tuple(x.strip() for x in a.params.split(",") if x.strip())
+    if a.fit_tissue and "tissue_factor" not in FIT_PARAMS:
         FIT_PARAMS = (*FIT_PARAMS, "tissue_factor")
     data = json.loads(a.data.read_text())
     records = [r for r in data["results"] if r.get("status", "ok") == "ok"]
@@ -126,10 +138,10 @@ def main(argv=None):
     if a.calibrate:
         from needletissue.frame.fitting import CalibrationPoint, calibration
 
-        pts = [CalibrationPoint(model_of(r), tuple(r["force_vector_N"]),
+        pts = [CalibrationPoint(model_of(r), tuple(r["force_vector_N"]), tuple(r["moment_Nmm"]),
                                 clamp_displacement_mm=tuple(r["clamp_centre_displacement_mm"]),
                                 max_needle_deflection_mm=r["max_needle_deformation_mm"]) for r in records]
-        c = calibration(pts, params=FIT_PARAMS)
+        c = calibration(pts, params=FIT_PARAMS, tolerance=(GOAL_MM, GOAL_REL))
         rows_c = compare(records, **c.params)
         report["calibrated"] = {"params": c.params, "intervals_95": c.intervals, "rms_mm": c.rms_mm,
                                 "summary": summary(rows_c), "rows": rows_c}
@@ -144,10 +156,10 @@ def main(argv=None):
         for cid in configs:
             train = [r for r in records if r["config_id"] != cid]
             test = [r for r in records if r["config_id"] == cid]
-            pts = [CalibrationPoint(model_of(r), tuple(r["force_vector_N"]),
+            pts = [CalibrationPoint(model_of(r), tuple(r["force_vector_N"]), tuple(r["moment_Nmm"]),
                                     clamp_displacement_mm=tuple(r["clamp_centre_displacement_mm"]),
                                     max_needle_deflection_mm=r["max_needle_deformation_mm"]) for r in train]
-            c = calibration(pts, params=FIT_PARAMS)
+            c = calibration(pts, params=FIT_PARAMS, tolerance=(GOAL_MM, GOAL_REL))
             rows_cv += compare(test, **c.params)
         report["cross_validated"] = {"summary": summary(rows_cv), "rows": rows_cv}
         _print(f"frame (leave one of {len(configs)} configurations out)", report["cross_validated"]["summary"])

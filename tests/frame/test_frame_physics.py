@@ -130,11 +130,13 @@ def test_foundation_formulas():
     assert lateral_foundation_k(150, 0.2, 2.5, 30) > lateral_foundation_k(150, 0.2, 2.5, 60)
     assert math.isclose(lateral_foundation_k(300, 0.2, 2.5, 60), 2 * lateral_foundation_k(150, 0.2, 2.5, 60))
     assert math.isclose(axial_foundation_k(150, 0.2, 2.5, 2.5 * math.e), 2 * math.pi * 150 / 2.4)
-    # Randolph-Wroth radius: deeper pins, the field reaches further, the per-length stiffness falls;
-    # it equals the default fixed radius at the default depth
-    assert FrameModel(depth_mm=40, bone_radius_mm=None).foundation["cancellous_lateral"] < f["cancellous_lateral"]
-    assert math.isclose(FrameModel(bone_radius_mm=None).foundation["cancellous_lateral"], f["cancellous_lateral"])
-    assert FrameModel(depth_mm=40).foundation["cancellous_lateral"] == f["cancellous_lateral"]
+    # the earlier uniform law (bone_law="winkler"), Randolph-Wroth radius: deeper pins, the field reaches
+    # further, the per-length stiffness falls; it equals the default fixed radius at the default depth
+    w = FrameModel(bone_law="winkler")
+    fw = w.foundation
+    assert w.replace(depth_mm=40, bone_radius_mm=None).foundation["cancellous_lateral"] < fw["cancellous_lateral"]
+    assert math.isclose(w.replace(bone_radius_mm=None).foundation["cancellous_lateral"], fw["cancellous_lateral"])
+    assert w.replace(depth_mm=40).foundation["cancellous_lateral"] == fw["cancellous_lateral"]
 
 
 def test_rotation_helpers():

@@ -47,6 +47,11 @@ def _opts():
         axial_factor=typer.Option(1.0, "--axial-factor", help="Factor on the bone's axial stiffness (shaft and "
                                   "tip; dimensionless, (0, 10])."),
         youngs_modulus=typer.Option(M.NEEDLE_E_MPA, "--youngs-modulus", help="Pin Young's modulus, MPa (> 0)."),
+        bone_thickness=typer.Option(M.DEFAULT_BONE_THICKNESS_MM, "--bone-thickness",
+                                    help="Bone thickness below its surface to its held far side, mm (> depth); "
+                                    "the plate bone law's cancellous core lies between the cortex and it."),
+        bone_law=typer.Option("plate", "--bone-law", help="plate (the cortex as a plate on a confined "
+                              "cancellous core, default) or winkler (the earlier uniform foundation)."),
         moment=typer.Option(None, "--moment", help="Moment MX,MY,MZ at the load point, N mm (with every force)."),
         json_out=typer.Option(False, "--json", help="Print JSON {model, results} instead of a table."),
     )
@@ -54,19 +59,23 @@ def _opts():
 
 def _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length, layer, no_tissue, root,
            load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor=1.0, calibrated=False,
-           plastic=False):
+           plastic=False, bone_thickness=None, bone_law="plate"):
     from needletissue.frame.model import FE_CALIBRATION, FrameModel
     from needletissue.ritz.model import DEFAULT_LAYERS, Layer
 
     layers = tuple(Layer.parse(t) for t in layer) if layer else DEFAULT_LAYERS
-    if calibrated:
-        foundation_factor, axial_factor, tissue_factor = (FE_CALIBRATION[k] for k in
+    fitted = {}
+    if calibrated:  # every fitted factor (the bone law's cortex_factor too), not only the ones with an option
+        fitted = dict(FE_CALIBRATION)
+        foundation_factor, axial_factor, tissue_factor = (fitted.pop(k) for k in
                                                           ("foundation_factor", "axial_factor", "tissue_factor"))
-    return FrameModel(needles=needles, spacing_mm=spacing, diameter_mm=diameter, free_length_mm=free_length,
+    return FrameModel(**fitted, needles=needles, spacing_mm=spacing, diameter_mm=diameter, free_length_mm=free_length,
                       depth_mm=depth, cortex_mm=cortex, clamp_length_mm=clamp_length, layers=layers,
                       tissue=not no_tissue, root=root, load_point_mm=_triple("--load-point", load_point),
                       foundation_factor=foundation_factor, tissue_factor=tissue_factor,
-                      axial_factor=axial_factor, youngs_modulus_MPa=youngs_modulus, plastic=plastic)
+                      axial_factor=axial_factor, youngs_modulus_MPa=youngs_modulus, plastic=plastic,
+                      bone_law=bone_law,
+                      **({} if bone_thickness is None else {"bone_thickness_mm": bone_thickness}))
 
 
 def register(app: typer.Typer, groups) -> None:
@@ -88,7 +97,8 @@ def register(app: typer.Typer, groups) -> None:
         foundation_factor: float = o["foundation_factor"], tissue_factor: float = o["tissue_factor"],
         youngs_modulus: float = o["youngs_modulus"], moment: Optional[str] = o["moment"],
         axial_factor: float = o["axial_factor"], calibrated: bool = o["calibrated"],
-        plastic: bool = o["plastic"],
+        plastic: bool = o["plastic"], bone_thickness: float = o["bone_thickness"],
+        bone_law: str = o["bone_law"],
         json_out: bool = o["json_out"],
         plot: Optional[Path] = typer.Option(None, "--plot", help="Draw each pin's deflection per force to "
                                             "FILE.png; config.toml, versions.json, results.json beside it."),
@@ -100,7 +110,7 @@ def register(app: typer.Typer, groups) -> None:
 
         model = _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length, layer, no_tissue,
                        root, load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor, calibrated,
-                       plastic)
+                       plastic, bone_thickness, bone_law)
         M = _triple("--moment", moment)
         forces = [_triple("--force", f) for f in force] if force else [(0.0, F, 0.0) for F in (100.0, 200.0, 300.0)]
         results = [solve(f, M, model) for f in forces]
@@ -134,7 +144,8 @@ def register(app: typer.Typer, groups) -> None:
         foundation_factor: float = o2["foundation_factor"], tissue_factor: float = o2["tissue_factor"],
         youngs_modulus: float = o2["youngs_modulus"], moment: Optional[str] = o2["moment"],
         axial_factor: float = o2["axial_factor"], calibrated: bool = o2["calibrated"],
-        plastic: bool = o2["plastic"],
+        plastic: bool = o2["plastic"], bone_thickness: float = o2["bone_thickness"],
+        bone_law: str = o2["bone_law"],
         json_out: bool = o2["json_out"],
     ):
         """Clamp pose to command so that the bone fragment reaches its target under the wrench."""
@@ -142,7 +153,7 @@ def register(app: typer.Typer, groups) -> None:
 
         model = _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length, layer, no_tissue,
                        root, load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor, calibrated,
-                       plastic)
+                       plastic, bone_thickness, bone_law)
         c = comp(_triple("--target", target), _triple("--target-rotation", target_rotation),
                  _triple("--force", force), _triple("--moment", moment), model, wrench_frame=wrench_frame,
                  detail=True)

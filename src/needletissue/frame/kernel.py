@@ -10,7 +10,7 @@ frame; what the part above z exerts on the part below):
     n' = -f(r, z),        m' = -r' x n
 
 with the distributed support f per unit reference length: bone (linear foundation, lateral k_h and
-axial k_z on u = r - X, torsional k_t on the twist), tissue (the paper's F = k (x + x^3) on the lateral displacement x = |u_xy|),
+axial k_z on u = r - X, torsional k_t on the twist, rocking k_r on the tilt: the cortex plate's bending), tissue (the paper's F = k (x + x^3) on the lateral displacement x = |u_xy|),
 nothing above the skin. RK4 with fixed steps inside each segment (segment ends on the layer
 interfaces, where f jumps).
 
@@ -61,7 +61,7 @@ def expm(w, R):
 
 
 @njit(cache=True, fastmath=True, inline="always")
-def _rhs(z, s, x0, y0, kind, kh, kz, kt, P, ds):
+def _rhs(z, s, x0, y0, kind, kh, kz, kt, kr, P, ds):
     # R row-major in s[3:12]: R[i, j] = s[3 + 3 i + j]
     n0, n1, n2 = s[12], s[13], s[14]
     m0, m1, m2 = s[15], s[16], s[17]
@@ -137,12 +137,16 @@ def _rhs(z, s, x0, y0, kind, kh, kz, kt, P, ds):
     ds[12] = -f0
     ds[13] = -f1
     ds[14] = -f2
-    # m' = -r' x n - l, l = -kt psi e3 the bone's torsional restraint (psi: twist about z)
+    # m' = -r' x n - l, l = -(kr psi_x, kr psi_y, kt psi_z) the bone's rocking and torsional restraint
+    # (psi = vee(R - R^T)/2, the small-rotation vector: the cortex turns by ~0.05 rad at most)
     ds[15] = -(t1 * n2 - t2 * n1)
     ds[16] = -(t2 * n0 - t0 * n2)
     ds[17] = -(t0 * n1 - t1 * n0)
     if kind == 0:
         ds[17] += kt * 0.5 * (s[6] - s[4])
+        if kr != 0.0:
+            ds[15] += kr * 0.5 * (s[10] - s[8])
+            ds[16] += kr * 0.5 * (s[5] - s[9])
 
 
 @njit(cache=True)
@@ -193,19 +197,20 @@ def integrate(a, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, end, store, do_store):
         kind = SK[g]
         kh = SKH[g]
         kz = SKZ[g]
-        kt = SKT[g]
+        kt = SKT[g, 0]   # torsion about the axis
+        kr = SKT[g, 1]   # rocking (tilt about x and y)
         for st in range(nst):
             z = za + st * h
-            _rhs(z, s, x0, y0, kind, kh, kz, kt, P, k1)
+            _rhs(z, s, x0, y0, kind, kh, kz, kt, kr, P, k1)
             for i in range(18):
                 t[i] = s[i] + 0.5 * h * k1[i]
-            _rhs(z + 0.5 * h, t, x0, y0, kind, kh, kz, kt, P, k2)
+            _rhs(z + 0.5 * h, t, x0, y0, kind, kh, kz, kt, kr, P, k2)
             for i in range(18):
                 t[i] = s[i] + 0.5 * h * k2[i]
-            _rhs(z + 0.5 * h, t, x0, y0, kind, kh, kz, kt, P, k3)
+            _rhs(z + 0.5 * h, t, x0, y0, kind, kh, kz, kt, kr, P, k3)
             for i in range(18):
                 t[i] = s[i] + h * k3[i]
-            _rhs(z + h, t, x0, y0, kind, kh, kz, kt, P, k4)
+            _rhs(z + h, t, x0, y0, kind, kh, kz, kt, kr, P, k4)
             for i in range(18):
                 s[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
             node += 1

@@ -64,7 +64,7 @@ class Discretisation:
     SK: np.ndarray   # kind: 0 bone, 1 tissue, 2 free
     SKH: np.ndarray  # lateral k, N/mm^2 (factors applied)
     SKZ: np.ndarray  # axial k, N/mm^2
-    SKT: np.ndarray  # torsional k, N mm/mm per rad
+    SKT: np.ndarray  # (segments, 2): torsional and rocking k, N mm/mm per rad
     SN: np.ndarray   # RK4 steps per segment (even)
     P: np.ndarray    # constants (kernel.EI ...)
     NX: np.ndarray   # needle (x, y)
@@ -81,26 +81,36 @@ def discretise(model: FrameModel, coarse: bool = False) -> Discretisation:
     m = model
     EI = m.bending_stiffness_Nmm2
     found = m.foundation
-    segs = []  # (name, z0, z1, kind, kh, kz, kt)
+    segs = []  # (name, z0, z1, kind, kh, kz, kt, kr)
     a = m.foundation_factor
     if m.root == "bone":
-        for name, z0, z1 in (("cancellous", -m.depth_mm, -m.cortex_mm), ("cortex", -m.cortex_mm, 0.0)):
-            segs.append((name, z0, z1, 0, a * found[f"{name}_lateral"], m.axial_factor * found[f"{name}_axial"],
-                         a * found[f"{name}_torsion"]))
+        if m.bone_law == "plate":
+            for z0, z1, kh in m.cancellous_profile:
+                segs.append(("cancellous", z0, z1, 0, a * kh, m.axial_factor * found["cancellous_axial"],
+                             a * found["cancellous_torsion"], 0.0))
+        else:
+            segs.append(("cancellous", -m.depth_mm, -m.cortex_mm, 0, a * found["cancellous_lateral"],
+                         m.axial_factor * found["cancellous_axial"], a * found["cancellous_torsion"], 0.0))
+        # plate law: the cortex's axial and rocking springs are its bending (cortex_factor); winkler: the
+        # axial shear cylinder (axial_factor) and no rocking spring
+        kz_c = (m.cortex_factor if m.bone_law == "plate" else m.axial_factor) * found["cortex_axial"]
+        segs.append(("cortex", -m.cortex_mm, 0.0, 0, a * found["cortex_lateral"], kz_c, a * found["cortex_torsion"],
+                     m.cortex_factor * found["cortex_rocking"]))
     z = 0.0
     if m.tissue:
         for la in m.layers:
-            segs.append((la.name, z, z + la.thickness_mm, 1, m.tissue_factor * la.k_N_per_mm2, 0.0, 0.0))
+            segs.append((la.name, z, z + la.thickness_mm, 1, m.tissue_factor * la.k_N_per_mm2, 0.0, 0.0, 0.0))
             z += la.thickness_mm
     if m.clamp_bottom_mm > z:
-        segs.append(("free", z, m.clamp_bottom_mm, 2, 0.0, 0.0, 0.0))
+        segs.append(("free", z, m.clamp_bottom_mm, 2, 0.0, 0.0, 0.0, 0.0))
     SZ = np.array([s[1] for s in segs] + [segs[-1][2]], float)
     SN = []
-    for name, z0, z1, kind, kh, kz, kt in segs:
+    for name, z0, z1, kind, kh, kz, kt, kr in segs:
         h = m.step_mm
-        if kind == 0:  # resolve the foundation's decay lengths: bending, axial, torsion
+        if kind == 0:  # resolve the foundation's decay lengths: bending, axial, torsion, rocking
             lam = min((4 * EI / kh) ** 0.25, math.sqrt(m.youngs_modulus_MPa * m.area_mm2 / kz),
-                      math.sqrt(2 * m.shear_modulus_MPa * m.second_moment_mm4 / kt))
+                      math.sqrt(2 * m.shear_modulus_MPa * m.second_moment_mm4 / kt),
+                      math.sqrt(EI / kr) if kr > 0 else math.inf)
             h = min(h, 0.5 * lam)
         n = 2 * max(1, math.ceil((z1 - z0) / (2 * h)))
         SN.append(n // 2 if coarse else n)
@@ -133,7 +143,7 @@ def discretise(model: FrameModel, coarse: bool = False) -> Discretisation:
     for g in range(len(segs)):
         zs.append(np.linspace(SZ[g], SZ[g + 1], SN[g] + 1)[1:])
     return Discretisation(SZ, np.array([s[3] for s in segs], np.int64), np.array([s[4] for s in segs], float),
-                          np.array([s[5] for s in segs], float), np.array([s[6] for s in segs], float), SN, P, np.array(m.needle_xy, float),
+                          np.array([s[5] for s in segs], float), np.array([s[6:8] for s in segs], float), SN, P, np.array(m.needle_xy, float),
                           np.array(m.load_point_mm, float), tuple(s[0] for s in segs), np.concatenate(zs))
 
 
@@ -427,7 +437,8 @@ def _post(model, disc, W, y, store, c, phi, Q, uC, it, steps) -> FrameResult:
             if name == "free":
                 continue
             a, b = bounds[g], bounds[g + 1]
-            react[name] = tuple((S[a, 12:15] - S[b, 12:15]).tolist())
+            prev = react.get(name, (0.0, 0.0, 0.0))  # the cancellous bone comes in sub-segments
+            react[name] = tuple((np.asarray(prev) + S[a, 12:15] - S[b, 12:15]).tolist())
             if name in bone:
                 sl = slice(a, b + 1)
                 pr = disc.SKH[g] * np.hypot(u[sl, 0], u[sl, 1]) / model.diameter_mm
