@@ -80,8 +80,12 @@ def anatomical_frame_model(s: AnatomicalSetup):
     """The frame model of the anatomical setup, with the factors fitted to the FE sweep (FE_CALIBRATION)."""
     from needletissue.frame.model import FE_CALIBRATION, FrameModel
 
+    # The pelvis is no plate of uniform thickness: as in fe needle's bone plate (depth 30 of 40 mm), the bone
+    # is taken to reach 10 mm beyond the tips (the plate law's confinement; docs/frame.md).
+    below_tip = FrameModel.__dataclass_fields__["bone_thickness_mm"].default - FrameModel.__dataclass_fields__["depth_mm"].default
     return FrameModel(needles=2, spacing_mm=s.spacing_mm, diameter_mm=s.diameter_mm, free_length_mm=s.free_length_mm,
-                      depth_mm=s.depth_mm, clamp_length_mm=s.clamp_length_mm, layers=s.layers, **FE_CALIBRATION)
+                      depth_mm=s.depth_mm, bone_thickness_mm=s.depth_mm + below_tip, clamp_length_mm=s.clamp_length_mm,
+                      layers=s.layers, **FE_CALIBRATION)
 
 
 @dataclass
@@ -182,10 +186,19 @@ def _frame_setup(m, forces) -> str:
     grip = (f"clamp grip {m.clamp_length_mm:g} mm, load at its mid-height {m.free_length_mm - m.clamp_length_mm / 2:.1f} "
             f"mm from the bone" if m.clamp_length_mm > 0 else "load at the pin end")
     layers = " + ".join(f"{la.name} {la.thickness_mm:.3g} mm" for la in m.layers)
-    fac = "factors fitted to the FE sweep" if m.foundation_factor != 1.0 else "physical factors"
     per = "/".join(f"{f / m.needles:g}" for f in forces)
     return (f"{_pins(m.needles)}, {per} N per pin, free length {m.free_length_mm:.4g} mm ({grip}), layers {layers}, "
-            f"{'bone' if m.root == 'bone' else 'rigid'} root{' (' + fac + ')' if m.root == 'bone' else ''}")
+            f"{'bone' if m.root == 'bone' else 'rigid'} root ({_factors(m)})")
+
+
+def _factors(m) -> str:
+    """The model's factors that differ from 1: the fitted ones (FE_CALIBRATION), or 'physical factors'."""
+    from needletissue.frame.model import FE_CALIBRATION
+
+    fitted = {k: getattr(m, k) for k in FE_CALIBRATION if getattr(m, k) != 1.0}
+    if not fitted:
+        return "physical factors"
+    return ", ".join(f"{k} {v:.3g}" for k, v in fitted.items()) + " fitted to the FE sweep"
 
 
 def chain(setup: AnatomicalSetup, ritz_model, order=3) -> tuple[list, list, dict]:
@@ -220,8 +233,12 @@ def chain(setup: AnatomicalSetup, ritz_model, order=3) -> tuple[list, list, dict
             "bone (the free length at which the paper's Ritz model gives its 17.63 mm)"
             + (f"; the force across the pin (its axial part was {100 * axial:.2g} % of F)" if axial > 1e-6 else ""),
             across)
-    m = add("paper's layers", _with(m, layers=tuple(ritz_model.layers)), "layers: measured -> the paper's Table 1 ("
-            + " + ".join(f"{la.name} {la.thickness_mm:g} mm" for la in ritz_model.layers) + ")", across)
+    fitted_tissue = m.tissue_factor
+    m = add("paper's layers", _with(m, layers=tuple(ritz_model.layers), tissue_factor=1.0),
+            "layers: measured -> the paper's Table 1 ("
+            + " + ".join(f"{la.name} {la.thickness_mm:g} mm" for la in ritz_model.layers) + ")"
+            + (f", springs k as printed (tissue_factor {fitted_tissue:.3g} fitted to the FE -> 1)"
+               if fitted_tissue != 1.0 else ""), across)
     last_bone = m
     m = add("rigid root", _with(m, root="rigid"), "root fixity: bone foundation -> rigid (built in at the bone "
             "surface, as the Ritz model)", across)
@@ -403,7 +420,8 @@ def reconcile(ritz_model, pelvis: dict | None = None, order=3) -> Reconciliation
                 "with the frame model's default bone.")
         pin = FrameModel(needles=1, free_length_mm=ritz_model.free_length_mm, clamp_length_mm=0.0,
                          diameter_mm=ritz_model.diameter_mm, layers=tuple(ritz_model.layers),
-                         youngs_modulus_MPa=ritz_model.youngs_modulus_MPa, **FE_CALIBRATION)
+                         youngs_modulus_MPa=ritz_model.youngs_modulus_MPa,
+                         **{**FE_CALIBRATION, "tissue_factor": 1.0})  # the paper's springs as printed
         frame_cases = [("the paper's one-pin setup, rigid root", _with(pin, root="rigid"), across, True),
                        ("the paper's one-pin setup, bone root", pin, across, False)]
     else:
