@@ -515,26 +515,319 @@ def _post_any(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, grid, gphi, wk,
     return _post(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, grid, gphi, wk, out, react, fast)
 
 
+# ---- Order 3 in closed form (issue 18) ----
+# At p = 3 the trial function is v = s^2 (a + b s), a = c0/2 - sqrt(3) c1/2, b = c1/sqrt(3)
+# (basis.py: phi0 = s^2/2, phi1 = sqrt(3) (s^3/3 - s^2/2)), and v' = s (2a + 3b s) / l. With
+# u = a + b s, w = 2a + 3b s the spring energy density 0.5 y + 0.25 y^2, y = v^2 (1 + v'^2), is
+#     0.5 s^4 u^2 + 0.5 s^6 (uw)^2 / l^2 + 0.25 [s^8 u^4 + 2 s^10 u^2 (uw)^2 / l^2 + s^12 (uw)^4 / l^4],
+# and each term a^(d-i) b^i of these forms carries exactly s^(e+i). Integrated over the layers, the
+# spring energy is therefore a sum of binary forms in (a, b) of degrees 2, 4, 6, 8 whose 24 coefficients
+# are integers times single moments mu_m = l sum_j k_j int_layer s^m ds (m = 4..20): exact, like the
+# Gauss rule, and independent of c and F. They are computed once per model (once per batch when only
+# the force varies); a Newton iteration then costs ~200 flops instead of a sum over 22 Gauss points.
+_R3 = np.sqrt(3.0)
+# coefficients, by power i of b, of u^2, u^4, (uw)^2, u^2 (uw)^2 and (uw)^4 (uw = 2a^2 + 5ab s + 3b^2 s^2)
+_U2 = np.array([1.0, 2.0, 1.0])
+_U4 = np.array([1.0, 4.0, 6.0, 4.0, 1.0])
+_UW2 = np.array([4.0, 20.0, 37.0, 30.0, 9.0])
+_U2UW2 = np.array([4.0, 28.0, 81.0, 124.0, 106.0, 48.0, 9.0])
+_UW4 = np.array([16.0, 160.0, 696.0, 1720.0, 2641.0, 2580.0, 1566.0, 540.0, 81.0])
+# Layout of the per-model table: the value forms (degrees 2, 4, 6, 8: 3 + 5 + 7 + 9 coefficients),
+# the gradient forms (degrees 1, 3, 5, 7, pairs d/da, d/db: 2 (2 + 4 + 6 + 8)) and the Hessian forms
+# (degrees 0, 2, 4, 6, triples aa, ab, bb: 3 (1 + 3 + 5 + 7)), then phi0(s3), phi1(s3).
+_NV, _NGR, _NH = 24, 40, 48
+_NTAB = _NV + _NGR + _NH + 2
+# Beyond these the closed form hands the sample to the Gauss path, which then reports exactly what it
+# always did (overflow to inf/nan happens at other magnitudes in the two forms); both are far outside
+# any physical needle (|v| / l <= 0.25).
+_C_BIG = 1e30  # mm
+_E_BIG = 1e150  # N mm
+FALLBACK = -1
+
+
+@njit(cache=True)
+def cubic_table(l, T, K, z3, cos_term, tab, mu):
+    """Fill tab (length _NTAB) with the order-3 energy forms of one model (geometry and k; not F)."""
+    for m in range(21):
+        mu[m] = 0.0
+    sa = 0.0
+    for j in range(T.shape[0]):
+        h = T[j] / l
+        sb = sa + h
+        # D_n = sb^n - sa^n through D_n = sb D_(n-1) + sa^(n-1) h: no cancellation in thin layers
+        dn = h
+        pa = 1.0
+        for n in range(2, 22):
+            pa *= sa
+            dn = sb * dn + pa * h
+            if n >= 5:
+                mu[n - 1] += K[j] * dn / n
+        sa = sb
+    cs = 1.0 if cos_term else 0.0
+    il2 = cs / (l * l)
+    il4 = il2 * il2
+    # value forms of degrees 2, 4, 6, 8 at offsets 0, 3, 8, 15
+    for i in range(3):
+        tab[i] = 0.5 * _U2[i] * mu[4 + i] * l
+    for i in range(5):
+        tab[3 + i] = (0.5 * il2 * _UW2[i] * mu[6 + i] + 0.25 * _U4[i] * mu[8 + i]) * l
+    for i in range(7):
+        tab[8 + i] = 0.5 * il2 * _U2UW2[i] * mu[10 + i] * l
+    for i in range(9):
+        tab[15 + i] = 0.25 * il4 * _UW4[i] * mu[12 + i] * l
+    # derivative forms: d/da of a^(d-i) b^i is (d-i) a^(d-1-i) b^i, d/db is i a^(d-i) b^(i-1)
+    kg = _NV
+    kh = _NV + _NGR
+    off = 0
+    for d in range(2, 10, 2):
+        for j in range(d):
+            tab[kg] = (d - j) * tab[off + j]
+            tab[kg + 1] = (j + 1) * tab[off + j + 1]
+            kg += 2
+        for j in range(d - 1):
+            tab[kh] = (d - j) * (d - j - 1) * tab[off + j]
+            tab[kh + 1] = (d - j - 1) * (j + 1) * tab[off + j + 1]
+            tab[kh + 2] = (j + 2) * (j + 1) * tab[off + j + 2]
+            kh += 3
+        off += d + 1
+    s3 = z3 / l
+    tab[_NTAB - 2] = 0.5 * s3 * s3
+    tab[_NTAB - 1] = _R3 * (s3 * s3 * s3 / 3.0 - 0.5 * s3 * s3)
+
+
+@njit(cache=True)
+def _energy3c(c0, c1, tab, kb, F, grad, pw):
+    """Order-3 energy from the table: (Pi, U_bend, U_spring, work, g0, g1, H00, H10, H11) in c."""
+    a = 0.5 * c0 - 0.5 * _R3 * c1
+    b = c1 / _R3
+    # pw[k] = a^k, pw[9 + k] = b^k
+    pw[0] = 1.0
+    pw[9] = 1.0
+    for k in range(1, 9):
+        pw[k] = pw[k - 1] * a
+        pw[9 + k] = pw[8 + k] * b
+    eb = 0.5 * kb * (c0 * c0 + c1 * c1)
+    wk = F * (c0 * tab[_NTAB - 2] + c1 * tab[_NTAB - 1])
+    es = 0.0
+    off = 0
+    for d in range(2, 10, 2):
+        for i in range(d + 1):
+            es += tab[off + i] * (pw[d - i] * pw[9 + i])
+        off += d + 1
+    if not grad:
+        return eb + es - wk, eb, es, wk, 0.0, 0.0, 0.0, 0.0, 0.0
+    ga = 0.0
+    gb = 0.0
+    k = _NV
+    for m in range(1, 9, 2):
+        for j in range(m + 1):
+            t = pw[m - j] * pw[9 + j]
+            ga += tab[k] * t
+            gb += tab[k + 1] * t
+            k += 2
+    haa = 0.0
+    hab = 0.0
+    hbb = 0.0
+    for m in range(0, 8, 2):
+        for j in range(m + 1):
+            t = pw[m - j] * pw[9 + j]
+            haa += tab[k] * t
+            hab += tab[k + 1] * t
+            hbb += tab[k + 2] * t
+            k += 3
+    # chain rule to c: da/dc = (1/2, -sqrt(3)/2), db/dc = (0, 1/sqrt(3))
+    g0 = kb * c0 - F * tab[_NTAB - 2] + 0.5 * ga
+    g1 = kb * c1 - F * tab[_NTAB - 1] - 0.5 * _R3 * ga + gb / _R3
+    h00 = kb + 0.25 * haa
+    h10 = 0.5 * (hab / _R3 - 0.5 * _R3 * haa)
+    h11 = kb + 0.75 * haa - hab + hbb / 3.0
+    return eb + es - wk, eb, es, wk, g0, g1, h00, h10, h11
+
+
+@njit(cache=True)
+def _chol2(h00, h10, h11, g0, g1, shift):
+    """_cholesky_solve for n = 2, same operations: (positive definite, d0, d1)."""
+    s = h00 + shift
+    if not s > 0.0:
+        return False, 0.0, 0.0
+    l00 = np.sqrt(s)
+    l10 = h10 / l00
+    s = h11 + shift - l10 * l10
+    if not s > 0.0:
+        return False, 0.0, 0.0
+    l11 = np.sqrt(s)
+    d0 = -g0 / l00
+    d1 = (-g1 - l10 * d0) / l11
+    d1 = d1 / l11
+    d0 = (d0 - l10 * d1) / l00
+    return True, d0, d1
+
+
+@njit(cache=True)
+def _safe(c0, c1, es, pi):
+    return abs(c0) <= _C_BIG and abs(c1) <= _C_BIG and es <= _E_BIG and np.isfinite(pi)
+
+
+@njit(cache=True)
+def _newton3c(c, F, kb, tab, pw):
+    """_newton at p = 3 on the closed-form energy: the same steps, line search and tests. Returns
+    (iterations, status), or (0, FALLBACK) when c or the energy leaves the range where both forms
+    are finite (the caller then runs the Gauss path from rest)."""
+    c0 = c[0]
+    c1 = c[1]
+    pi, eb, es, w, g0, g1, h00, h10, h11 = _energy3c(c0, c1, tab, kb, F, True, pw)
+    if not _safe(c0, c1, es, pi):
+        return 0, FALLBACK
+    for it in range(_MAXIT):
+        shift = 0.0
+        pd, d0, d1 = _chol2(h00, h10, h11, g0, g1, 0.0)
+        if not pd:
+            shift = 1e-8 * kb
+            while True:
+                ok, d0, d1 = _chol2(h00, h10, h11, g0, g1, shift)
+                if ok:
+                    break
+                shift *= 10.0
+        t0 = c0 + d0
+        t1 = c1 + d1
+        dn = max(abs(d0), abs(d1))
+        cn = max(abs(t0), abs(t1))
+        slope = g0 * d0 + g1 * d1
+        pt, ebt, est, wt, q0, q1, k00, k10, k11 = _energy3c(t0, t1, tab, kb, F, True, pw)
+        if not _safe(t0, t1, est, pt):
+            return 0, FALLBACK
+        scale = abs(eb) + abs(es) + abs(w) + 1e-300
+        if pt <= pi + 1e-4 * slope or -slope <= 1e-13 * scale:
+            c0 = t0
+            c1 = t1
+            pi, eb, es, w, g0, g1, h00, h10, h11 = pt, ebt, est, wt, q0, q1, k00, k10, k11
+            if pd and (dn <= _RTOL * cn + _ATOL or -slope <= 1e-15 * scale):
+                c[0] = c0
+                c[1] = c1
+                return it + 1, OK
+            continue
+        t = 0.5
+        while True:
+            t0 = c0 + t * d0
+            t1 = c1 + t * d1
+            r = _energy3c(t0, t1, tab, kb, F, False, pw)
+            if not _safe(t0, t1, r[2], r[0]):
+                return 0, FALLBACK
+            if r[0] <= pi + 1e-4 * t * slope:
+                break
+            t *= 0.5
+            if t < 1e-14:
+                c[0] = c0
+                c[1] = c1
+                return it, LINE_SEARCH
+        c0 = t0
+        c1 = t1
+        pi, eb, es, w, g0, g1, h00, h10, h11 = _energy3c(c0, c1, tab, kb, F, True, pw)
+    c[0] = c0
+    c[1] = c1
+    return _MAXIT, MAX_ITER
+
+
+@njit(cache=True)
+def _post3c(c, F, kb, l, T, K, cos_term, GX, GW, tab, pw, out, react):
+    """_post at p = 3 in closed form (the layer reactions on _post's Gauss rule: their integrand
+    carries sqrt(1 + v'^2), which the rule does not integrate exactly, so the same rule is used)."""
+    c0 = c[0]
+    c1 = c[1]
+    a = 0.5 * c0 - 0.5 * _R3 * c1
+    b = c1 / _R3
+    pi, eb, es, wk = _energy3c(c0, c1, tab, kb, F, False, pw)[:4]
+    out[LOAD] = c0 * tab[_NTAB - 2] + c1 * tab[_NTAB - 1]
+    out[U_BEND] = eb
+    out[U_SPRING] = es
+    out[WORK] = wk
+    out[TIP] = a + b
+    out[TIP_DVDZ] = c0 / l  # dv/ds(1) = 2a + 3b = c0
+    # maximum |v| as _post finds it on the 65-point grid s = k/64: v' = s (2a + 3b s) vanishes only at
+    # s = 0 and s* = -2a/(3b), so the grid maximum is at the grid points around s* or at s = 1; an
+    # interior grid maximum is refined to s* (where _post's Newton on dv/ds = 0 converges)
+    ss = -2.0 * a / (3.0 * b) if b != 0.0 else -1.0
+    kbest = 0
+    vbest = 0.0
+    lo = int(ss * 64.0) if 0.0 < ss < 1.0 else 64
+    k = lo
+    while k <= 64:  # the candidates lo, lo + 1, 64 in _post's order (it keeps the first strict maximum)
+        s = k / 64.0
+        v = s * s * (a + b * s)
+        if abs(v) > abs(vbest):
+            vbest = v
+            kbest = k
+        k = k + 1 if k == lo else (64 if k < 64 else 65)
+    sbest = kbest / 64.0
+    if 0 < kbest < 64:
+        v = ss * ss * (a + b * ss)
+        if abs(v) > abs(vbest):
+            vbest = v
+            sbest = ss
+    out[VMAX] = vbest
+    out[ZMAX] = sbest * l
+    nq = 11 if cos_term else 7
+    za = 0.0
+    for j in range(T.shape[0]):
+        zb = za + T[j]
+        half = 0.5 * (zb - za)
+        r = 0.0
+        for g in range(nq):
+            z = za + half * (GX[nq, g] + 1.0)
+            s = z / l
+            v = s * s * (a + b * s)
+            if cos_term:
+                dd = s * (2.0 * a + 3.0 * b * s) / l
+                x = v * np.sqrt(1.0 + dd * dd)
+            else:
+                x = v
+            r += K[j] * half * GW[nq, g] * (x + x * x * x)
+        react[j] = r
+        za = zb
+
+
 def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
-                 A, Ad, GX, GW, grid, gphi, C, S, R, fast):
+                 A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate):
+    """Samples start..stop-1. The model arrays KB, L, Z3, T, K have one row per sample, or a single
+    row that every sample shares (a batch that varies the force only). closed: order 3 through the
+    closed-form energy (cubic_table); estimate: also solve order p + 1 for error_estimate (else NaN)."""
     nl = T.shape[1]
     wk = _workspace(pmax + 1, nl)
     c = np.zeros(pmax)
     c2 = np.zeros(pmax)
+    tab = np.empty(_NTAB)
+    mu = np.empty(21)
+    pw = np.empty(18)
+    shared = L.shape[0] == 1
+    cubic = closed and order == 3
+    if cubic and shared:
+        cubic_table(L[0], T[0], K[0], Z3[0], cos_term, tab, mu)
     for m in range(start, stop):
+        g = 0 if shared else m
         for i in range(pmax):
             c[i] = 0.0
         p = order
-        it, st = _newton_any(p, c, F[m], KB[m], L[m], Z3[m], T[m], K[m], cos_term, A, Ad, GX, GW, wk, fast)
-        est = np.inf
+        gauss = True
+        if cubic:
+            if not shared:
+                cubic_table(L[g], T[g], K[g], Z3[g], cos_term, tab, mu)
+            it, st = _newton3c(c, F[m], KB[g], tab, pw)
+            gauss = st == FALLBACK
+            if gauss:
+                c[0] = 0.0
+                c[1] = 0.0
+        if gauss:
+            it, st = _newton_any(p, c, F[m], KB[g], L[g], Z3[g], T[g], K[g], cos_term, A, Ad, GX, GW,
+                                 wk, fast)
+        est = np.inf if estimate else np.nan
         prev = np.inf  # change from order p - 1 to p
-        while st == OK:
+        while estimate and st == OK:
             # error estimate: sup-norm change of v on the grid when the order is raised by one
             for i in range(pmax):
                 c2[i] = c[i]
             c2[p - 1] = 0.0
-            it2, st2 = _newton_any(p + 1, c2, F[m], KB[m], L[m], Z3[m], T[m], K[m], cos_term,
-                               A, Ad, GX, GW, wk, fast)
+            it2, st2 = _newton_any(p + 1, c2, F[m], KB[g], L[g], Z3[g], T[g], K[g], cos_term,
+                                   A, Ad, GX, GW, wk, fast)
             if st2 != OK:
                 st = st2
                 break
@@ -564,12 +857,15 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
         for i in range(pmax - 1):
             C[m, i] = c[i] if i < p - 1 else 0.0
         if st == OK:
-            _post_any(p, c, F[m], KB[m], L[m], Z3[m], T[m], K[m], cos_term, A, Ad, GX, GW, grid, gphi,
-                  wk, S[m], R[m], fast)
+            if p == 3 and not gauss:
+                _post3c(c, F[m], KB[g], L[g], T[g], K[g], cos_term, GX, GW, tab, pw, S[m], R[m])
+            else:
+                _post_any(p, c, F[m], KB[g], L[g], Z3[g], T[g], K[g], cos_term, A, Ad, GX, GW, grid,
+                          gphi, wk, S[m], R[m], fast)
 
 
 def _solve_all(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, A, Ad, GX, GW, grid, gphi,
-               C, S, R, chunks, fast):
+               C, S, R, chunks, fast, closed, estimate):
     N = F.shape[0]
     size = (N + chunks - 1) // chunks
     for b in prange(chunks):
@@ -577,7 +873,7 @@ def _solve_all(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, A, Ad, GX, 
         stop = min(N, start + size)
         if start < stop:
             _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
-                         A, Ad, GX, GW, grid, gphi, C, S, R, fast)
+                         A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate)
 
 
 _solve_range = njit(cache=True)(_solve_range)
