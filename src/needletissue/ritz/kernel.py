@@ -533,10 +533,13 @@ _UW2 = np.array([4.0, 20.0, 37.0, 30.0, 9.0])
 _U2UW2 = np.array([4.0, 28.0, 81.0, 124.0, 106.0, 48.0, 9.0])
 _UW4 = np.array([16.0, 160.0, 696.0, 1720.0, 2641.0, 2580.0, 1566.0, 540.0, 81.0])
 # Layout of the per-model table: the value forms (degrees 2, 4, 6, 8: 3 + 5 + 7 + 9 coefficients),
-# the gradient forms (degrees 1, 3, 5, 7, pairs d/da, d/db: 2 (2 + 4 + 6 + 8)) and the Hessian forms
-# (degrees 0, 2, 4, 6, triples aa, ab, bb: 3 (1 + 3 + 5 + 7)), then phi0(s3), phi1(s3).
-_NV, _NGR, _NH = 24, 40, 48
-_NTAB = _NV + _NGR + _NH + 2
+# the Hessian forms (degrees 0, 2, 4, 6, triples aa, ab, bb: 3 (1 + 3 + 5 + 7)), phi0(s3), phi1(s3),
+# then the Gauss points of _post's reaction rule: s and k * weight * dz/dxi, layer by layer.
+# The gradient and the value follow from the Hessian forms by Euler's identity for a form P of
+# degree d: a P_a + b P_b = d P (and the same for P_a, P_b of degree d - 1).
+_NV, _NH = 24, 48
+_NTAB = _NV + _NH + 2
+_INV = 1.0 / np.arange(1.0, 23.0)  # _INV[n - 1] = 1 / n (multiplications, not divisions, per moment)
 # Beyond these the closed form hands the sample to the Gauss path, which then reports exactly what it
 # always did (overflow to inf/nan happens at other magnitudes in the two forms); both are far outside
 # any physical needle (|v| / l <= 0.25).
@@ -546,8 +549,13 @@ FALLBACK = -1
 
 
 @njit(cache=True)
-def cubic_table(l, T, K, z3, cos_term, tab, mu):
-    """Fill tab (length _NTAB) with the order-3 energy forms of one model (geometry and k; not F)."""
+def table_size(nl, cos_term):
+    return _NTAB + 2 * nl * (11 if cos_term else 7)
+
+
+@njit(cache=True)
+def cubic_table(l, T, K, z3, cos_term, tab, mu, GX, GW):
+    """Fill tab (table_size) with the order-3 energy forms of one model (geometry and k; not F)."""
     for m in range(21):
         mu[m] = 0.0
     sa = 0.0
@@ -561,7 +569,7 @@ def cubic_table(l, T, K, z3, cos_term, tab, mu):
             pa *= sa
             dn = sb * dn + pa * h
             if n >= 5:
-                mu[n - 1] += K[j] * dn / n
+                mu[n - 1] += K[j] * dn * _INV[n - 1]
         sa = sb
     cs = 1.0 if cos_term else 0.0
     il2 = cs / (l * l)
@@ -575,15 +583,10 @@ def cubic_table(l, T, K, z3, cos_term, tab, mu):
         tab[8 + i] = 0.5 * il2 * _U2UW2[i] * mu[10 + i] * l
     for i in range(9):
         tab[15 + i] = 0.25 * il4 * _UW4[i] * mu[12 + i] * l
-    # derivative forms: d/da of a^(d-i) b^i is (d-i) a^(d-1-i) b^i, d/db is i a^(d-i) b^(i-1)
-    kg = _NV
-    kh = _NV + _NGR
+    # Hessian forms: d2/da2 of a^(d-i) b^i is (d-i)(d-i-1) a^(d-2-i) b^i, and so on
+    kh = _NV
     off = 0
     for d in range(2, 10, 2):
-        for j in range(d):
-            tab[kg] = (d - j) * tab[off + j]
-            tab[kg + 1] = (j + 1) * tab[off + j + 1]
-            kg += 2
         for j in range(d - 1):
             tab[kh] = (d - j) * (d - j - 1) * tab[off + j]
             tab[kh + 1] = (d - j - 1) * (j + 1) * tab[off + j + 1]
@@ -593,13 +596,26 @@ def cubic_table(l, T, K, z3, cos_term, tab, mu):
     s3 = z3 / l
     tab[_NTAB - 2] = 0.5 * s3 * s3
     tab[_NTAB - 1] = _R3 * (s3 * s3 * s3 / 3.0 - 0.5 * s3 * s3)
+    nq = 11 if cos_term else 7
+    nl = T.shape[0]
+    il = 1.0 / l
+    q = _NTAB
+    za = 0.0
+    for j in range(nl):
+        zb = za + T[j]
+        half = 0.5 * (zb - za)
+        for g in range(nq):
+            tab[q] = (za + half * (GX[nq, g] + 1.0)) * il
+            tab[q + nl * nq] = K[j] * half * GW[nq, g]  # _post's W, same operations
+            q += 1
+        za = zb
 
 
 @njit(cache=True)
 def _energy3c(c0, c1, tab, kb, F, grad, pw):
     """Order-3 energy from the table: (Pi, U_bend, U_spring, work, g0, g1, H00, H10, H11) in c."""
     a = 0.5 * c0 - 0.5 * _R3 * c1
-    b = c1 / _R3
+    b = c1 * (1.0 / _R3)
     # pw[k] = a^k, pw[9 + k] = b^k
     pw[0] = 1.0
     pw[9] = 1.0
@@ -609,57 +625,67 @@ def _energy3c(c0, c1, tab, kb, F, grad, pw):
     eb = 0.5 * kb * (c0 * c0 + c1 * c1)
     wk = F * (c0 * tab[_NTAB - 2] + c1 * tab[_NTAB - 1])
     es = 0.0
-    off = 0
-    for d in range(2, 10, 2):
-        for i in range(d + 1):
-            es += tab[off + i] * (pw[d - i] * pw[9 + i])
-        off += d + 1
     if not grad:
+        # the value forms, one partial sum per degree (independent chains of additions)
+        off = 0
+        for d in range(2, 10, 2):
+            e = 0.0
+            for i in range(d + 1):
+                e += tab[off + i] * (pw[d - i] * pw[9 + i])
+            es += e
+            off += d + 1
         return eb + es - wk, eb, es, wk, 0.0, 0.0, 0.0, 0.0, 0.0
-    ga = 0.0
-    gb = 0.0
+    # the Hessian forms of degree d - 2, then Euler: gradient (degree d - 1) and value (degree d)
+    ga = gb = haa = hab = hbb = 0.0
     k = _NV
-    for m in range(1, 9, 2):
-        for j in range(m + 1):
-            t = pw[m - j] * pw[9 + j]
-            ga += tab[k] * t
-            gb += tab[k + 1] * t
-            k += 2
-    haa = 0.0
-    hab = 0.0
-    hbb = 0.0
     for m in range(0, 8, 2):
+        saa = 0.0
+        sab = 0.0
+        sbb = 0.0
         for j in range(m + 1):
             t = pw[m - j] * pw[9 + j]
-            haa += tab[k] * t
-            hab += tab[k + 1] * t
-            hbb += tab[k + 2] * t
+            saa += tab[k] * t
+            sab += tab[k + 1] * t
+            sbb += tab[k + 2] * t
             k += 3
-    # chain rule to c: da/dc = (1/2, -sqrt(3)/2), db/dc = (0, 1/sqrt(3))
-    g0 = kb * c0 - F * tab[_NTAB - 2] + 0.5 * ga
-    g1 = kb * c1 - F * tab[_NTAB - 1] - 0.5 * _R3 * ga + gb / _R3
-    h00 = kb + 0.25 * haa
-    h10 = 0.5 * (hab / _R3 - 0.5 * _R3 * haa)
-    h11 = kb + 0.75 * haa - hab + hbb / 3.0
+        pa = (a * saa + b * sab) * _INV[m]  # 1 / (d - 1)
+        pb = (a * sab + b * sbb) * _INV[m]
+        es += (a * pa + b * pb) * _INV[m + 1]  # 1 / d
+        ga += pa
+        gb += pb
+        haa += saa
+        hab += sab
+        hbb += sbb
+    g0, g1, h00, h10, h11 = _to_c(kb, F, c0, c1, tab, ga, gb, haa, hab, hbb)
     return eb + es - wk, eb, es, wk, g0, g1, h00, h10, h11
 
 
 @njit(cache=True)
+def _to_c(kb, F, c0, c1, tab, ga, gb, haa, hab, hbb):
+    """Gradient and Hessian in c from those of the spring energy in (a, b), with bending and load:
+    da/dc = (1/2, -sqrt(3)/2), db/dc = (0, 1/sqrt(3))."""
+    g0 = kb * c0 - F * tab[_NTAB - 2] + 0.5 * ga
+    g1 = kb * c1 - F * tab[_NTAB - 1] - 0.5 * _R3 * ga + gb * (1.0 / _R3)
+    h00 = kb + 0.25 * haa
+    h10 = 0.5 * (hab * (1.0 / _R3) - 0.5 * _R3 * haa)
+    h11 = kb + 0.75 * haa - hab + hbb * (1.0 / 3.0)
+    return g0, g1, h00, h10, h11
+
+
+@njit(cache=True)
 def _chol2(h00, h10, h11, g0, g1, shift):
-    """_cholesky_solve for n = 2, same operations: (positive definite, d0, d1)."""
-    s = h00 + shift
-    if not s > 0.0:
+    """d = -(H + shift I)^-1 g for n = 2 as L D L^T (two divisions, no square roots); the
+    positive-definiteness test is _cholesky_solve's (both pivots > 0). (positive definite, d0, d1)."""
+    s0 = h00 + shift
+    if not s0 > 0.0:
         return False, 0.0, 0.0
-    l00 = np.sqrt(s)
-    l10 = h10 / l00
-    s = h11 + shift - l10 * l10
-    if not s > 0.0:
+    r0 = 1.0 / s0
+    l10 = h10 * r0
+    s1 = h11 + shift - l10 * h10
+    if not s1 > 0.0:
         return False, 0.0, 0.0
-    l11 = np.sqrt(s)
-    d0 = -g0 / l00
-    d1 = (-g1 - l10 * d0) / l11
-    d1 = d1 / l11
-    d0 = (d0 - l10 * d1) / l00
+    d1 = (l10 * g0 - g1) / s1
+    d0 = -g0 * r0 - l10 * d1
     return True, d0, d1
 
 
@@ -670,14 +696,15 @@ def _safe(c0, c1, es, pi):
 
 @njit(cache=True)
 def _newton3c(c, F, kb, tab, pw):
-    """_newton at p = 3 on the closed-form energy: the same steps, line search and tests. Returns
-    (iterations, status), or (0, FALLBACK) when c or the energy leaves the range where both forms
-    are finite (the caller then runs the Gauss path from rest)."""
-    c0 = c[0]
-    c1 = c[1]
-    pi, eb, es, w, g0, g1, h00, h10, h11 = _energy3c(c0, c1, tab, kb, F, True, pw)
-    if not _safe(c0, c1, es, pi):
-        return 0, FALLBACK
+    """_newton at p = 3 from rest on the closed-form energy: the same steps, line search and tests.
+    Returns (iterations, status, U_bend, U_spring, work at c), status FALLBACK when c or the energy
+    leaves the range where both forms are finite (the caller then runs the Gauss path from rest)."""
+    c0 = 0.0
+    c1 = 0.0
+    # at rest: Pi = 0, g = -F phi(s3), H = bending + linear springs (the degree-0 Hessian form)
+    pi = eb = es = w = 0.0
+    kh = _NV
+    g0, g1, h00, h10, h11 = _to_c(kb, F, c0, c1, tab, 0.0, 0.0, tab[kh], tab[kh + 1], tab[kh + 2])
     for it in range(_MAXIT):
         shift = 0.0
         pd, d0, d1 = _chol2(h00, h10, h11, g0, g1, 0.0)
@@ -693,18 +720,22 @@ def _newton3c(c, F, kb, tab, pw):
         dn = max(abs(d0), abs(d1))
         cn = max(abs(t0), abs(t1))
         slope = g0 * d0 + g1 * d1
-        pt, ebt, est, wt, q0, q1, k00, k10, k11 = _energy3c(t0, t1, tab, kb, F, True, pw)
-        if not _safe(t0, t1, est, pt):
-            return 0, FALLBACK
         scale = abs(eb) + abs(es) + abs(w) + 1e-300
+        last = pd and (dn <= _RTOL * cn + _ATOL or -slope <= 1e-15 * scale)
+        # gradient and Hessian at the trial point only if another iteration will use them
+        pt, ebt, est, wt, q0, q1, k00, k10, k11 = _energy3c(t0, t1, tab, kb, F, not last, pw)
+        if not _safe(t0, t1, est, pt):
+            c[0] = c0
+            c[1] = c1
+            return 0, FALLBACK, 0.0, 0.0, 0.0
         if pt <= pi + 1e-4 * slope or -slope <= 1e-13 * scale:
             c0 = t0
             c1 = t1
-            pi, eb, es, w, g0, g1, h00, h10, h11 = pt, ebt, est, wt, q0, q1, k00, k10, k11
-            if pd and (dn <= _RTOL * cn + _ATOL or -slope <= 1e-15 * scale):
+            if last:
                 c[0] = c0
                 c[1] = c1
-                return it + 1, OK
+                return it + 1, OK, ebt, est, wt
+            pi, eb, es, w, g0, g1, h00, h10, h11 = pt, ebt, est, wt, q0, q1, k00, k10, k11
             continue
         t = 0.5
         while True:
@@ -712,31 +743,32 @@ def _newton3c(c, F, kb, tab, pw):
             t1 = c1 + t * d1
             r = _energy3c(t0, t1, tab, kb, F, False, pw)
             if not _safe(t0, t1, r[2], r[0]):
-                return 0, FALLBACK
+                return 0, FALLBACK, 0.0, 0.0, 0.0
             if r[0] <= pi + 1e-4 * t * slope:
                 break
             t *= 0.5
             if t < 1e-14:
                 c[0] = c0
                 c[1] = c1
-                return it, LINE_SEARCH
+                return it, LINE_SEARCH, eb, es, w
         c0 = t0
         c1 = t1
         pi, eb, es, w, g0, g1, h00, h10, h11 = _energy3c(c0, c1, tab, kb, F, True, pw)
+        if not _safe(c0, c1, es, pi):
+            return 0, FALLBACK, 0.0, 0.0, 0.0
     c[0] = c0
     c[1] = c1
-    return _MAXIT, MAX_ITER
+    return _MAXIT, MAX_ITER, eb, es, w
 
 
 @njit(cache=True)
-def _post3c(c, F, kb, l, T, K, cos_term, GX, GW, tab, pw, out, react):
-    """_post at p = 3 in closed form (the layer reactions on _post's Gauss rule: their integrand
-    carries sqrt(1 + v'^2), which the rule does not integrate exactly, so the same rule is used)."""
+def _post3c(c, l, nl, cos_term, tab, eb, es, wk, out, react, fq):
+    """_post at p = 3 in closed form, given the energies at c. The layer reactions use _post's Gauss
+    rule (from the table): their integrand carries sqrt(1 + v'^2), which no rule integrates exactly."""
     c0 = c[0]
     c1 = c[1]
     a = 0.5 * c0 - 0.5 * _R3 * c1
-    b = c1 / _R3
-    pi, eb, es, wk = _energy3c(c0, c1, tab, kb, F, False, pw)[:4]
+    b = c1 * (1.0 / _R3)
     out[LOAD] = c0 * tab[_NTAB - 2] + c1 * tab[_NTAB - 1]
     out[U_BEND] = eb
     out[U_SPRING] = es
@@ -767,23 +799,26 @@ def _post3c(c, F, kb, l, T, K, cos_term, GX, GW, tab, pw, out, react):
     out[VMAX] = vbest
     out[ZMAX] = sbest * l
     nq = 11 if cos_term else 7
-    za = 0.0
-    for j in range(T.shape[0]):
-        zb = za + T[j]
-        half = 0.5 * (zb - za)
-        r = 0.0
+    il = 1.0 / l
+    a2 = 2.0 * a * il  # dv/dz = s (a2 + b3 s)
+    b3 = 3.0 * b * il
+    q = _NTAB
+    for j in range(nl):
+        # the points first (independent: the compiler can vectorise the square roots), then the sum
         for g in range(nq):
-            z = za + half * (GX[nq, g] + 1.0)
-            s = z / l
+            s = tab[q + g]
             v = s * s * (a + b * s)
             if cos_term:
-                dd = s * (2.0 * a + 3.0 * b * s) / l
+                dd = s * (a2 + b3 * s)
                 x = v * np.sqrt(1.0 + dd * dd)
             else:
                 x = v
-            r += K[j] * half * GW[nq, g] * (x + x * x * x)
+            fq[g] = tab[q + nl * nq + g] * (x + x * x * x)
+        r = 0.0
+        for g in range(nq):
+            r += fq[g]
         react[j] = r
-        za = zb
+        q += nq
 
 
 def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
@@ -795,13 +830,14 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
     wk = _workspace(pmax + 1, nl)
     c = np.zeros(pmax)
     c2 = np.zeros(pmax)
-    tab = np.empty(_NTAB)
+    tab = np.empty(table_size(nl, cos_term))
     mu = np.empty(21)
     pw = np.empty(18)
+    fq = np.empty(11)
     shared = L.shape[0] == 1
     cubic = closed and order == 3
     if cubic and shared:
-        cubic_table(L[0], T[0], K[0], Z3[0], cos_term, tab, mu)
+        cubic_table(L[0], T[0], K[0], Z3[0], cos_term, tab, mu, GX, GW)
     for m in range(start, stop):
         g = 0 if shared else m
         for i in range(pmax):
@@ -810,8 +846,8 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
         gauss = True
         if cubic:
             if not shared:
-                cubic_table(L[g], T[g], K[g], Z3[g], cos_term, tab, mu)
-            it, st = _newton3c(c, F[m], KB[g], tab, pw)
+                cubic_table(L[g], T[g], K[g], Z3[g], cos_term, tab, mu, GX, GW)
+            it, st, eb, es, wk_ = _newton3c(c, F[m], KB[g], tab, pw)
             gauss = st == FALLBACK
             if gauss:
                 c[0] = 0.0
@@ -858,7 +894,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
             C[m, i] = c[i] if i < p - 1 else 0.0
         if st == OK:
             if p == 3 and not gauss:
-                _post3c(c, F[m], KB[g], L[g], T[g], K[g], cos_term, GX, GW, tab, pw, S[m], R[m])
+                _post3c(c, L[g], nl, cos_term, tab, eb, es, wk_, S[m], R[m], fq)
             else:
                 _post_any(p, c, F[m], KB[g], L[g], Z3[g], T[g], K[g], cos_term, A, Ad, GX, GW, grid,
                           gphi, wk, S[m], R[m], fast)
