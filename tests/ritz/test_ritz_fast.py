@@ -146,7 +146,7 @@ def test_closed_form_energy_is_the_integral(cos):
     l, T, K, z3, kb, F = 90.0, np.array([20.0, 12.0, 5.0]), np.array([0.3, 0.02, 1.1]), 80.0, 40.0, 250.0
     GX, GW = basis.gauss_tables()
     tab = np.empty(kernel.table_size(T.size, cos))
-    kernel.cubic_table(l, T, K, z3, cos, tab, np.empty(21), GX, GW)
+    kernel.cubic_table(l, T, K, z3, cos, tab, np.empty(66), GX, GW)
     x, w = np.polynomial.legendre.leggauss(60)
     edges = np.concatenate([[0.0], np.cumsum(T)])
 

@@ -555,21 +555,34 @@ def table_size(nl, cos_term):
 
 @njit(cache=True)
 def cubic_table(l, T, K, z3, cos_term, tab, mu, GX, GW):
-    """Fill tab (table_size) with the order-3 energy forms of one model (geometry and k; not F)."""
-    for m in range(21):
+    """Fill tab (table_size) with the order-3 energy forms of one model (geometry and k; not F).
+    mu: scratch of 66 floats (offsets, not slices: a slice costs two reference-count updates)."""
+    # mu[m] = sum_j k_j int_layer s^m ds; per layer [sa, sb]: mu[22 + n] = sb^n - sa^n, mu[44 + n] = sa^n
+    for m in range(22):
         mu[m] = 0.0
+    il = 1.0 / l
     sa = 0.0
     for j in range(T.shape[0]):
-        h = T[j] / l
+        h = T[j] * il
         sb = sa + h
-        # D_n = sb^n - sa^n through D_n = sb D_(n-1) + sa^(n-1) h: no cancellation in thin layers
-        dn = h
-        pa = 1.0
-        for n in range(2, 22):
-            pa *= sa
-            dn = sb * dn + pa * h
-            if n >= 5:
-                mu[n - 1] += K[j] * dn * _INV[n - 1]
+        # D_(m+k) = sb^k D_m + sa^m D_k: sums of positive terms (no cancellation in thin layers),
+        # and with k = 4 four independent chains instead of one of length 20
+        mu[23] = h
+        mu[44] = 1.0
+        mu[45] = sa
+        for n in range(2, 5):
+            mu[22 + n] = sb * mu[21 + n] + mu[43 + n] * h
+            mu[44 + n] = mu[43 + n] * sa
+        sb2 = sb * sb
+        sb4 = sb2 * sb2
+        d4 = mu[26]
+        p4 = mu[48]
+        for n in range(5, 22):
+            mu[22 + n] = sb4 * mu[18 + n] + mu[40 + n] * d4
+            mu[44 + n] = mu[40 + n] * p4
+        kj = K[j]
+        for n in range(5, 22):
+            mu[n - 1] += kj * mu[22 + n] * _INV[n - 1]
         sa = sb
     cs = 1.0 if cos_term else 0.0
     il2 = cs / (l * l)
@@ -598,7 +611,6 @@ def cubic_table(l, T, K, z3, cos_term, tab, mu, GX, GW):
     tab[_NTAB - 1] = _R3 * (s3 * s3 * s3 / 3.0 - 0.5 * s3 * s3)
     nq = 11 if cos_term else 7
     nl = T.shape[0]
-    il = 1.0 / l
     q = _NTAB
     za = 0.0
     for j in range(nl):
@@ -831,9 +843,10 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
     c = np.zeros(pmax)
     c2 = np.zeros(pmax)
     tab = np.empty(table_size(nl, cos_term))
-    mu = np.empty(21)
+    mu = np.empty(66)
     pw = np.empty(18)
     fq = np.empty(11)
+    out = np.full(NCOLS, np.nan)  # one sample's scalars (NaN where a failed sample has none)
     shared = L.shape[0] == 1
     cubic = closed and order == 3
     if cubic and shared:
@@ -886,18 +899,24 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
                 c[i] = c2[i]
             p += 1
             it = it2
-        S[m, ORDER] = p
-        S[m, ITER] = it
-        S[m, STATUS] = st
-        S[m, ERR] = est
+        out[ORDER] = p
+        out[ITER] = it
+        out[STATUS] = st
+        out[ERR] = est
         for i in range(pmax - 1):
             C[m, i] = c[i] if i < p - 1 else 0.0
         if st == OK:
             if p == 3 and not gauss:
-                _post3c(c, L[g], nl, cos_term, tab, eb, es, wk_, S[m], R[m], fq)
+                _post3c(c, L[g], nl, cos_term, tab, eb, es, wk_, out, R[m], fq)
             else:
                 _post_any(p, c, F[m], KB[g], L[g], Z3[g], T[g], K[g], cos_term, A, Ad, GX, GW, grid,
-                          gphi, wk, S[m], R[m], fast)
+                          gphi, wk, out, R[m], fast)
+        else:
+            for i in range(TIP, ERR):
+                out[i] = np.nan
+        # S is (NCOLS, N): every output column contiguous, ready to be handed out without a copy
+        for i in range(NCOLS):
+            S[i, m] = out[i]
 
 
 def _solve_all(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, A, Ad, GX, GW, grid, gphi,

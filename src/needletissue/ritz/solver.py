@@ -219,7 +219,7 @@ def _run(F, KB, L, Z3, T, K, cos_term, order, auto, max_order, tol, parallel, es
     N = F.shape[0]
     pmax = max_order if auto else order
     C = np.empty((N, pmax))
-    S = np.empty((N, kernel.NCOLS))
+    S = np.empty((kernel.NCOLS, N))  # one row per output column
     R = np.empty((N, T.shape[1]))
     if parallel is None:
         parallel = N >= _PARALLEL_MIN
@@ -230,7 +230,7 @@ def _run(F, KB, L, Z3, T, K, cos_term, order, auto, max_order, tol, parallel, es
         fn, chunks = kernel.solve_serial, 1
     fn(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, *_TABLES, C, S, R, chunks, _FAST,
        _FAST and _CLOSED, estimate)
-    status = S[:, kernel.STATUS]
+    status = S[kernel.STATUS]
     if status.any():
         bad = np.flatnonzero(status != kernel.OK)
         m = bad[0]
@@ -258,7 +258,7 @@ def solve(force: float, model: RitzModel | None = None, order=3, tol_mm: float =
 
 
 def _result(F, C, S, R, model, m, tol) -> RitzResult:
-    s = S[m]
+    s = S[:, m]
     p = int(s[kernel.ORDER])
     c = C[m, : p - 1]
     a = (c @ basis.monomial_matrix(p)) / model.free_length_mm ** np.arange(p + 1)
@@ -383,28 +383,29 @@ def solve_batch(force, *, diameter_mm=None, free_length_mm=None, youngs_modulus_
             m = np.flatnonzero(over)[0]
             raise InputError("load_point_mm", f"must be in (0, free_length_mm], got {Z3[m]} > {l[m]} "
                              f"at index {m}")
-    KB = E * (np.pi * d**4 / 64.0) / l**3
+    d2 = d * d  # products, not np.power (a libm pow per element for exponents other than 2)
+    KB = E * (np.pi * (d2 * d2) / 64.0) / (l * l * l)
     # one compiled signature only: C-contiguous, writeable float64 (broadcast views are read-only)
     F, KB, l, Z3, T, K = (np.require(a, np.float64, ["C", "W"]) for a in (F, KB, l, Z3, T, K))
     C, S, R = _run(F, KB, l, Z3, T, K, model.cos_term, p, auto, max_order, tol, parallel,
                    bool(error_estimate))
     return BatchResult(
         force_N=F,
-        tip_deflection_mm=S[:, kernel.TIP].copy(),
-        load_point_deflection_mm=S[:, kernel.LOAD].copy(),
-        max_deflection_mm=S[:, kernel.VMAX].copy(),
-        z_max_mm=S[:, kernel.ZMAX].copy(),
-        tip_slope_rad=np.arctan(S[:, kernel.TIP_DVDZ]),
+        tip_deflection_mm=S[kernel.TIP],
+        load_point_deflection_mm=S[kernel.LOAD],
+        max_deflection_mm=S[kernel.VMAX],
+        z_max_mm=S[kernel.ZMAX],
+        tip_slope_rad=np.arctan(S[kernel.TIP_DVDZ]),
         spring_reaction_N=R,
-        energy_Nmm=S[:, kernel.U_BEND] + S[:, kernel.U_SPRING] - S[:, kernel.WORK],
-        bending_energy_Nmm=S[:, kernel.U_BEND].copy(),
-        spring_energy_Nmm=S[:, kernel.U_SPRING].copy(),
-        work_Nmm=S[:, kernel.WORK].copy(),
+        energy_Nmm=S[kernel.U_BEND] + S[kernel.U_SPRING] - S[kernel.WORK],
+        bending_energy_Nmm=S[kernel.U_BEND],
+        spring_energy_Nmm=S[kernel.U_SPRING],
+        work_Nmm=S[kernel.WORK],
         basis_coefficients_mm=np.ascontiguousarray(C),
-        order=S[:, kernel.ORDER].astype(int),
-        iterations=S[:, kernel.ITER].astype(int),
-        error_estimate_mm=S[:, kernel.ERR].copy(),
-        converged=S[:, kernel.ERR] <= tol,
+        order=S[kernel.ORDER].astype(int),
+        iterations=S[kernel.ITER].astype(int),
+        error_estimate_mm=S[kernel.ERR],
+        converged=S[kernel.ERR] <= tol,
         free_length_mm=l if ng == n else np.full(n, l[0]),
         layer_names=tuple(la.name for la in model.layers) if nl == len(model.layers)
         else tuple(f"layer{j}" for j in range(nl)),
