@@ -54,7 +54,8 @@ def cpu_table(n=N_BATCH, repeat=5):
         for kind, (F, kw) in batches(n).items():
             for name, fast, closed, est in PATHS:  # compile and warm every path first
                 solver._FAST, solver._CLOSED = fast, closed
-                ritz.solve_batch(F[:10], **{a: v[:10] for a, v in kw.items()}, parallel=False, error_estimate=est)
+                ritz.solve_batch(F[:10], **{a: v[:10] for a, v in kw.items()}, parallel=False,
+                                 error_estimate=est)
             for _ in range(repeat):
                 for name, fast, closed, est in PATHS:
                     solver._FAST, solver._CLOSED = fast, closed
@@ -152,8 +153,8 @@ def test_batch_throughput(benchmark, monkeypatch, parallel, path):
     monkeypatch.setattr(solver, "_CLOSED", closed)
     F, kw = batches()["all parameters"]
     ritz.solve_batch(F[:10], **{a: v[:10] for a, v in kw.items()}, parallel=parallel, error_estimate=est)
-    b = benchmark.pedantic(ritz.solve_batch, args=(F,), kwargs=dict(**kw, parallel=parallel, error_estimate=est),
-                           rounds=3, iterations=1)
+    b = benchmark.pedantic(ritz.solve_batch, args=(F,),
+                           kwargs=dict(**kw, parallel=parallel, error_estimate=est), rounds=3, iterations=1)
     assert len(b) == N_BATCH and b.error_estimated == est
     name = benchmark.name.split("[")[-1].rstrip("]")
     _report(name, benchmark.stats.stats.median, N_BATCH)

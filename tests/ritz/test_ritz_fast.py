@@ -99,8 +99,9 @@ def test_force_only_batch_shares_one_model_row(monkeypatch):
     F = np.random.default_rng(3).uniform(-2000, 2000, 500)
     model = RitzModel(load_point_mm=70.0)  # solve_batch takes the load point as an argument only
     shared = ritz.solve_batch(F, model=model, load_point_mm=70.0, parallel=False, error_estimate=False)
-    rows = ritz.solve_batch(F, model=model, load_point_mm=70.0, diameter_mm=np.full(F.size, model.diameter_mm),
-                            parallel=False, error_estimate=False)
+    d = np.full(F.size, model.diameter_mm)  # an array: one model row per sample
+    rows = ritz.solve_batch(F, model=model, load_point_mm=70.0, diameter_mm=d, parallel=False,
+                            error_estimate=False)
     for f in FIELDS + ("iterations", "free_length_mm"):
         np.testing.assert_array_equal(getattr(shared, f), getattr(rows, f), err_msg=f)
     one = [ritz.solve(f, model) for f in F[:5]]  # the control-loop path, one force at a time
