@@ -1,28 +1,40 @@
-"""The fast kernel path (unrolled, vectorised orders 3 and 4) against the generic reference loops.
+"""The fast kernel paths against the generic reference loops: the unrolled, vectorised orders 3 and 4,
+and order 3 through its closed-form energy (kernel.cubic_table: moments of the layers, once per model).
 
-Both paths run the same Newton iteration; the fast one only sums over Gauss points in another order
-and with fused multiply-adds, so every result must agree to round-off (1e-12 of the field's scale),
-iteration counts and failure reports included.
+All paths run the same Newton iteration; the fast ones only evaluate the same exact integrals in
+another order (Gauss points summed differently, or moments of s), so every result must agree to
+round-off (1e-12 of the field's scale), iteration counts and failure reports included.
 """
 
 import numpy as np
 import pytest
 
 from needletissue import ritz
-from needletissue.errors import ConvergenceError
-from needletissue.ritz import RitzModel, solver
+from needletissue.errors import ConvergenceError, InputError
+from needletissue.ritz import RitzModel, basis, kernel, solver
 
 FIELDS = ("tip_deflection_mm", "load_point_deflection_mm", "max_deflection_mm", "z_max_mm", "tip_slope_rad",
           "spring_reaction_N", "energy_Nmm", "bending_energy_Nmm", "spring_energy_Nmm", "work_Nmm",
           "basis_coefficients_mm")
 
 
-def _both(monkeypatch, fn):
+def _both(monkeypatch, fn, closed=True):
+    """fn() on the reference loops, then on the fast path (closed: with the closed-form order 3)."""
+    monkeypatch.setattr(solver, "_CLOSED", closed)
     out = []
     for fast in (False, True):
         monkeypatch.setattr(solver, "_FAST", fast)
         out.append(fn())
     return out
+
+
+def _assert_same(ref, fast):
+    assert np.array_equal(ref.order, fast.order)
+    assert np.array_equal(ref.iterations, fast.iterations)
+    assert np.array_equal(ref.converged, fast.converged)
+    for f in FIELDS:
+        a, b = getattr(ref, f), getattr(fast, f)
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * np.abs(a).max(), err_msg=f)
 
 
 def _random_batch(rng, n):
@@ -33,20 +45,16 @@ def _random_batch(rng, n):
                 load_point_mm=None)
 
 
+@pytest.mark.parametrize("closed", [True, False], ids=["closed_p3", "unrolled"])
 @pytest.mark.parametrize("order", [3, 4, "auto"])
 @pytest.mark.parametrize("cos", [True, False])
-def test_fast_path_equals_reference(monkeypatch, order, cos):
+def test_fast_path_equals_reference(monkeypatch, order, cos, closed):
     rng = np.random.default_rng(7)
     kw = _random_batch(rng, 400)
     kw["load_point_mm"] = kw["free_length_mm"] * rng.uniform(0.5, 1.0, 400)
     ref, fast = _both(monkeypatch, lambda: ritz.solve_batch(**kw, model=RitzModel(cos_term=cos), order=order,
-                                                            parallel=False))
-    assert np.array_equal(ref.order, fast.order)
-    assert np.array_equal(ref.iterations, fast.iterations)
-    assert np.array_equal(ref.converged, fast.converged)
-    for f in FIELDS:
-        a, b = getattr(ref, f), getattr(fast, f)
-        np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * np.abs(a).max(), err_msg=f)
+                                                            parallel=False), closed)
+    _assert_same(ref, fast)
     # the estimate is a difference of two deflections: round-off relative to the deflection
     np.testing.assert_allclose(fast.error_estimate_mm, ref.error_estimate_mm, rtol=1e-12,
                                atol=1e-12 * np.abs(ref.max_deflection_mm).max())
@@ -64,3 +72,104 @@ def test_fast_path_single_solve_and_failure_report(monkeypatch):
             ritz.solve_batch(np.array([100.0, 1e200, 300.0, 1e250]), parallel=False)
         msgs.append(str(exc.value))
     assert msgs[0] == msgs[1] and "2 of 4 samples" in msgs[1] and "sample 1" in msgs[1]
+
+
+@pytest.mark.parametrize("cos", [True, False])
+def test_closed_form_order3_on_random_models_and_stiff_tissue(monkeypatch, cos):
+    """Every parameter random, tissue up to 10^4 x Table 1 and loads near the bone: the closed form
+    gives the reference's answers and iteration counts, also where |v| peaks inside the span."""
+    rng = np.random.default_rng(11)
+    n = 3000
+    kw = _random_batch(rng, n)
+    kw["youngs_modulus_MPa"] = rng.uniform(50e3, 210e3, n)
+    kw["k_N_per_mm2"] = np.array([0.048, 0.023]) * np.exp(rng.uniform(np.log(0.1), np.log(1e4), (n, 2)))
+    kw["load_point_mm"] = kw["free_length_mm"] * np.exp(rng.uniform(np.log(0.01), 0.0, n))
+    ref, fast = _both(monkeypatch, lambda: ritz.solve_batch(**kw, model=RitzModel(cos_term=cos),
+                                                            parallel=False, error_estimate=False))
+    _assert_same(ref, fast)
+    # where the maximum is inside the span it is the stationary point of v = a2 z^2 + a3 z^3
+    a = fast.coefficients
+    inner = fast.z_max_mm < fast.free_length_mm * (1 - 1e-9)
+    assert inner.sum() >= 5
+    np.testing.assert_allclose(fast.z_max_mm[inner], -2 * a[inner, 2] / (3 * a[inner, 3]), rtol=1e-12)
+
+
+def test_force_only_batch_shares_one_model_row(monkeypatch):
+    """Scalars for every model parameter: one table for the batch; the same numbers as one row each."""
+    F = np.random.default_rng(3).uniform(-2000, 2000, 500)
+    model = RitzModel(load_point_mm=70.0)  # solve_batch takes the load point as an argument only
+    shared = ritz.solve_batch(F, model=model, load_point_mm=70.0, parallel=False, error_estimate=False)
+    d = np.full(F.size, model.diameter_mm)  # an array: one model row per sample
+    rows = ritz.solve_batch(F, model=model, load_point_mm=70.0, diameter_mm=d, parallel=False,
+                            error_estimate=False)
+    for f in FIELDS + ("iterations", "free_length_mm"):
+        np.testing.assert_array_equal(getattr(shared, f), getattr(rows, f), err_msg=f)
+    one = [ritz.solve(f, model) for f in F[:5]]  # the control-loop path, one force at a time
+    np.testing.assert_allclose(shared.tip_deflection_mm[:5], [r.tip_deflection_mm for r in one], rtol=1e-13)
+
+
+def test_without_error_estimate_the_answer_is_the_same_and_says_so():
+    rng = np.random.default_rng(5)
+    kw = _random_batch(rng, 300)
+    with_est = ritz.solve_batch(**kw, parallel=False)
+    without = ritz.solve_batch(**kw, parallel=False, error_estimate=False)
+    for f in FIELDS + ("iterations", "order"):
+        np.testing.assert_array_equal(getattr(without, f), getattr(with_est, f), err_msg=f)
+    assert with_est.error_estimated and np.isfinite(with_est.error_estimate_mm).all()
+    assert not without.error_estimated and np.isnan(without.error_estimate_mm).all()
+    assert not without.order_converged.any()  # not shown without an estimate
+    r = without[0]
+    assert r.error_estimated is False and np.isnan(r.error_estimate_mm) and r.order_converged is False
+    with pytest.raises(InputError, match="error_estimate"):
+        ritz.solve_batch(kw["force"], order="auto", error_estimate=False)
+    with pytest.raises(InputError, match="error_estimate"):
+        ritz.solve_batch(kw["force"], error_estimate="no")
+
+
+@pytest.mark.parametrize("error_estimate", [True, False])
+def test_closed_form_failure_report_is_the_reference_one(monkeypatch, error_estimate):
+    """Forces far beyond any needle overflow the energy: the closed form hands those samples to the
+    Gauss path, so the per-sample failure report is the reference's."""
+    msgs = []
+    for fast_path in (False, True):
+        monkeypatch.setattr(solver, "_FAST", fast_path)
+        with pytest.raises(ConvergenceError) as exc:
+            ritz.solve_batch(np.array([100.0, 1e200, 300.0, 1e250]), parallel=False,
+                             error_estimate=error_estimate)
+        msgs.append(str(exc.value))
+    assert msgs[0] == msgs[1] and "2 of 4 samples" in msgs[1] and "sample 1" in msgs[1]
+
+
+@pytest.mark.parametrize("cos", [True, False])
+def test_closed_form_energy_is_the_integral(cos):
+    """The table's energy, gradient and Hessian against an independent computation: the spring
+    energy integrated by a 60-point Gauss rule per layer in NumPy, differentiated by central differences."""
+    l, T, K, z3, kb, F = 90.0, np.array([20.0, 12.0, 5.0]), np.array([0.3, 0.02, 1.1]), 80.0, 40.0, 250.0
+    GX, GW = basis.gauss_tables()
+    tab = np.empty(kernel.table_size(T.size, cos))
+    kernel.cubic_table(l, T, K, z3, cos, tab, np.empty(66), GX, GW)
+    x, w = np.polynomial.legendre.leggauss(60)
+    edges = np.concatenate([[0.0], np.cumsum(T)])
+
+    def energy(c):
+        es = 0.0
+        for j in range(T.size):
+            z = edges[j] + (x + 1) * T[j] / 2
+            v = basis.evaluate(z / l, 3) @ c
+            dv = basis.evaluate(z / l, 3, 1) @ c / l
+            y = v * v * (1 + dv * dv) if cos else v * v
+            es += K[j] * T[j] / 2 * np.sum(w * (0.5 * y + 0.25 * y * y))
+        return 0.5 * kb * c @ c + es - F * basis.evaluate(np.array([z3 / l]), 3)[0] @ c
+
+    c = np.array([7.0, -2.5])
+    pi, eb, es, wk, g0, g1, h00, h10, h11 = kernel._energy3c(c[0], c[1], tab, kb, F, True, np.empty(18))
+    assert pi == pytest.approx(energy(c), rel=1e-13)
+    assert kernel._energy3c(c[0], c[1], tab, kb, F, False, np.empty(18))[0] == pytest.approx(pi, rel=1e-13)
+    h = 1e-4
+    e = np.eye(2) * h
+    grad = [(energy(c + e[i]) - energy(c - e[i])) / (2 * h) for i in range(2)]
+    hess = [[(energy(c + e[i] + e[j]) - energy(c + e[i] - e[j]) - energy(c - e[i] + e[j])
+              + energy(c - e[i] - e[j])) / (4 * h * h) for j in range(2)] for i in range(2)]
+    np.testing.assert_allclose([g0, g1], grad, rtol=1e-7, atol=1e-7 * abs(g0))
+    # central differences of an energy ~1e3 N mm with h = 1e-4: round-off ~1e-16 * 1e3 / h^2 ~ 1e-5
+    np.testing.assert_allclose([[h00, h10], [h10, h11]], hess, rtol=1e-5, atol=1e-6 * max(h00, h11))

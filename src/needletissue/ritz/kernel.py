@@ -515,26 +515,368 @@ def _post_any(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, grid, gphi, wk,
     return _post(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, grid, gphi, wk, out, react, fast)
 
 
+# ---- Order 3 in closed form (issue 18) ----
+# At p = 3 the trial function is v = s^2 (a + b s), a = c0/2 - sqrt(3) c1/2, b = c1/sqrt(3)
+# (basis.py: phi0 = s^2/2, phi1 = sqrt(3) (s^3/3 - s^2/2)), and v' = s (2a + 3b s) / l. With
+# u = a + b s, w = 2a + 3b s the spring energy density 0.5 y + 0.25 y^2, y = v^2 (1 + v'^2), is
+#     0.5 s^4 u^2 + 0.5 s^6 (uw)^2 / l^2 + 0.25 [s^8 u^4 + 2 s^10 u^2 (uw)^2 / l^2 + s^12 (uw)^4 / l^4],
+# and each term a^(d-i) b^i of these forms carries exactly s^(e+i). Integrated over the layers, the
+# spring energy is therefore a sum of binary forms in (a, b) of degrees 2, 4, 6, 8 whose 24 coefficients
+# are integers times single moments mu_m = l sum_j k_j int_layer s^m ds (m = 4..20): exact, like the
+# Gauss rule, and independent of c and F. They are computed once per model (once per batch when only
+# the force varies); a Newton iteration then costs ~200 flops instead of a sum over 22 Gauss points.
+_R3 = np.sqrt(3.0)
+# coefficients, by power i of b, of u^2, u^4, (uw)^2, u^2 (uw)^2 and (uw)^4 (uw = 2a^2 + 5ab s + 3b^2 s^2)
+_U2 = np.array([1.0, 2.0, 1.0])
+_U4 = np.array([1.0, 4.0, 6.0, 4.0, 1.0])
+_UW2 = np.array([4.0, 20.0, 37.0, 30.0, 9.0])
+_U2UW2 = np.array([4.0, 28.0, 81.0, 124.0, 106.0, 48.0, 9.0])
+_UW4 = np.array([16.0, 160.0, 696.0, 1720.0, 2641.0, 2580.0, 1566.0, 540.0, 81.0])
+# Layout of the per-model table: the value forms (degrees 2, 4, 6, 8: 3 + 5 + 7 + 9 coefficients),
+# the Hessian forms (degrees 0, 2, 4, 6, triples aa, ab, bb: 3 (1 + 3 + 5 + 7)), phi0(s3), phi1(s3),
+# then the Gauss points of _post's reaction rule: s and k * weight * dz/dxi, layer by layer.
+# The gradient and the value follow from the Hessian forms by Euler's identity for a form P of
+# degree d: a P_a + b P_b = d P (and the same for P_a, P_b of degree d - 1).
+_NV, _NH = 24, 48
+_NTAB = _NV + _NH + 2
+_INV = 1.0 / np.arange(1.0, 23.0)  # _INV[n - 1] = 1 / n (multiplications, not divisions, per moment)
+# Beyond these the closed form hands the sample to the Gauss path, which then reports exactly what it
+# always did (overflow to inf/nan happens at other magnitudes in the two forms); both are far outside
+# any physical needle (|v| / l <= 0.25).
+_C_BIG = 1e30  # mm
+_E_BIG = 1e150  # N mm
+FALLBACK = -1
+
+
+@njit(cache=True)
+def table_size(nl, cos_term):
+    return _NTAB + 2 * nl * (11 if cos_term else 7)
+
+
+@njit(cache=True)
+def cubic_table(l, T, K, z3, cos_term, tab, mu, GX, GW):
+    """Fill tab (table_size) with the order-3 energy forms of one model (geometry and k; not F).
+    mu: scratch of 66 floats (offsets, not slices: a slice costs two reference-count updates)."""
+    # mu[m] = sum_j k_j int_layer s^m ds; per layer [sa, sb]: mu[22 + n] = sb^n - sa^n, mu[44 + n] = sa^n
+    for m in range(22):
+        mu[m] = 0.0
+    il = 1.0 / l
+    sa = 0.0
+    for j in range(T.shape[0]):
+        h = T[j] * il
+        sb = sa + h
+        # D_(m+k) = sb^k D_m + sa^m D_k: sums of positive terms (no cancellation in thin layers),
+        # and with k = 4 four independent chains instead of one of length 20
+        mu[23] = h
+        mu[44] = 1.0
+        mu[45] = sa
+        for n in range(2, 5):
+            mu[22 + n] = sb * mu[21 + n] + mu[43 + n] * h
+            mu[44 + n] = mu[43 + n] * sa
+        sb2 = sb * sb
+        sb4 = sb2 * sb2
+        d4 = mu[26]
+        p4 = mu[48]
+        for n in range(5, 22):
+            mu[22 + n] = sb4 * mu[18 + n] + mu[40 + n] * d4
+            mu[44 + n] = mu[40 + n] * p4
+        kj = K[j]
+        for n in range(5, 22):
+            mu[n - 1] += kj * mu[22 + n] * _INV[n - 1]
+        sa = sb
+    cs = 1.0 if cos_term else 0.0
+    il2 = cs / (l * l)
+    il4 = il2 * il2
+    # value forms of degrees 2, 4, 6, 8 at offsets 0, 3, 8, 15
+    for i in range(3):
+        tab[i] = 0.5 * _U2[i] * mu[4 + i] * l
+    for i in range(5):
+        tab[3 + i] = (0.5 * il2 * _UW2[i] * mu[6 + i] + 0.25 * _U4[i] * mu[8 + i]) * l
+    for i in range(7):
+        tab[8 + i] = 0.5 * il2 * _U2UW2[i] * mu[10 + i] * l
+    for i in range(9):
+        tab[15 + i] = 0.25 * il4 * _UW4[i] * mu[12 + i] * l
+    # Hessian forms: d2/da2 of a^(d-i) b^i is (d-i)(d-i-1) a^(d-2-i) b^i, and so on
+    kh = _NV
+    off = 0
+    for d in range(2, 10, 2):
+        for j in range(d - 1):
+            tab[kh] = (d - j) * (d - j - 1) * tab[off + j]
+            tab[kh + 1] = (d - j - 1) * (j + 1) * tab[off + j + 1]
+            tab[kh + 2] = (j + 2) * (j + 1) * tab[off + j + 2]
+            kh += 3
+        off += d + 1
+    s3 = z3 / l
+    tab[_NTAB - 2] = 0.5 * s3 * s3
+    tab[_NTAB - 1] = _R3 * (s3 * s3 * s3 / 3.0 - 0.5 * s3 * s3)
+    nq = 11 if cos_term else 7
+    nl = T.shape[0]
+    q = _NTAB
+    za = 0.0
+    for j in range(nl):
+        zb = za + T[j]
+        half = 0.5 * (zb - za)
+        for g in range(nq):
+            tab[q] = (za + half * (GX[nq, g] + 1.0)) * il
+            tab[q + nl * nq] = K[j] * half * GW[nq, g]  # _post's W, same operations
+            q += 1
+        za = zb
+
+
+@njit(cache=True)
+def _energy3c(c0, c1, tab, kb, F, grad, pw):
+    """Order-3 energy from the table: (Pi, U_bend, U_spring, work, g0, g1, H00, H10, H11) in c."""
+    a = 0.5 * c0 - 0.5 * _R3 * c1
+    b = c1 * (1.0 / _R3)
+    # pw[k] = a^k, pw[9 + k] = b^k
+    pw[0] = 1.0
+    pw[9] = 1.0
+    for k in range(1, 9):
+        pw[k] = pw[k - 1] * a
+        pw[9 + k] = pw[8 + k] * b
+    eb = 0.5 * kb * (c0 * c0 + c1 * c1)
+    wk = F * (c0 * tab[_NTAB - 2] + c1 * tab[_NTAB - 1])
+    es = 0.0
+    if not grad:
+        # the value forms, one partial sum per degree (independent chains of additions)
+        off = 0
+        for d in range(2, 10, 2):
+            e = 0.0
+            for i in range(d + 1):
+                e += tab[off + i] * (pw[d - i] * pw[9 + i])
+            es += e
+            off += d + 1
+        return eb + es - wk, eb, es, wk, 0.0, 0.0, 0.0, 0.0, 0.0
+    # the Hessian forms of degree d - 2, then Euler: gradient (degree d - 1) and value (degree d)
+    ga = gb = haa = hab = hbb = 0.0
+    k = _NV
+    for m in range(0, 8, 2):
+        saa = 0.0
+        sab = 0.0
+        sbb = 0.0
+        for j in range(m + 1):
+            t = pw[m - j] * pw[9 + j]
+            saa += tab[k] * t
+            sab += tab[k + 1] * t
+            sbb += tab[k + 2] * t
+            k += 3
+        pa = (a * saa + b * sab) * _INV[m]  # 1 / (d - 1)
+        pb = (a * sab + b * sbb) * _INV[m]
+        es += (a * pa + b * pb) * _INV[m + 1]  # 1 / d
+        ga += pa
+        gb += pb
+        haa += saa
+        hab += sab
+        hbb += sbb
+    g0, g1, h00, h10, h11 = _to_c(kb, F, c0, c1, tab, ga, gb, haa, hab, hbb)
+    return eb + es - wk, eb, es, wk, g0, g1, h00, h10, h11
+
+
+@njit(cache=True)
+def _to_c(kb, F, c0, c1, tab, ga, gb, haa, hab, hbb):
+    """Gradient and Hessian in c from those of the spring energy in (a, b), with bending and load:
+    da/dc = (1/2, -sqrt(3)/2), db/dc = (0, 1/sqrt(3))."""
+    g0 = kb * c0 - F * tab[_NTAB - 2] + 0.5 * ga
+    g1 = kb * c1 - F * tab[_NTAB - 1] - 0.5 * _R3 * ga + gb * (1.0 / _R3)
+    h00 = kb + 0.25 * haa
+    h10 = 0.5 * (hab * (1.0 / _R3) - 0.5 * _R3 * haa)
+    h11 = kb + 0.75 * haa - hab + hbb * (1.0 / 3.0)
+    return g0, g1, h00, h10, h11
+
+
+@njit(cache=True)
+def _chol2(h00, h10, h11, g0, g1, shift):
+    """d = -(H + shift I)^-1 g for n = 2 as L D L^T (two divisions, no square roots); the
+    positive-definiteness test is _cholesky_solve's (both pivots > 0). (positive definite, d0, d1)."""
+    s0 = h00 + shift
+    if not s0 > 0.0:
+        return False, 0.0, 0.0
+    r0 = 1.0 / s0
+    l10 = h10 * r0
+    s1 = h11 + shift - l10 * h10
+    if not s1 > 0.0:
+        return False, 0.0, 0.0
+    d1 = (l10 * g0 - g1) / s1
+    d0 = -g0 * r0 - l10 * d1
+    return True, d0, d1
+
+
+@njit(cache=True)
+def _safe(c0, c1, es, pi):
+    return abs(c0) <= _C_BIG and abs(c1) <= _C_BIG and es <= _E_BIG and np.isfinite(pi)
+
+
+@njit(cache=True)
+def _newton3c(c, F, kb, tab, pw):
+    """_newton at p = 3 from rest on the closed-form energy: the same steps, line search and tests.
+    Returns (iterations, status, U_bend, U_spring, work at c), status FALLBACK when c or the energy
+    leaves the range where both forms are finite (the caller then runs the Gauss path from rest)."""
+    c0 = 0.0
+    c1 = 0.0
+    # at rest: Pi = 0, g = -F phi(s3), H = bending + linear springs (the degree-0 Hessian form)
+    pi = eb = es = w = 0.0
+    kh = _NV
+    g0, g1, h00, h10, h11 = _to_c(kb, F, c0, c1, tab, 0.0, 0.0, tab[kh], tab[kh + 1], tab[kh + 2])
+    for it in range(_MAXIT):
+        shift = 0.0
+        pd, d0, d1 = _chol2(h00, h10, h11, g0, g1, 0.0)
+        if not pd:
+            shift = 1e-8 * kb
+            while True:
+                ok, d0, d1 = _chol2(h00, h10, h11, g0, g1, shift)
+                if ok:
+                    break
+                shift *= 10.0
+        t0 = c0 + d0
+        t1 = c1 + d1
+        dn = max(abs(d0), abs(d1))
+        cn = max(abs(t0), abs(t1))
+        slope = g0 * d0 + g1 * d1
+        scale = abs(eb) + abs(es) + abs(w) + 1e-300
+        last = pd and (dn <= _RTOL * cn + _ATOL or -slope <= 1e-15 * scale)
+        # gradient and Hessian at the trial point only if another iteration will use them
+        pt, ebt, est, wt, q0, q1, k00, k10, k11 = _energy3c(t0, t1, tab, kb, F, not last, pw)
+        if not _safe(t0, t1, est, pt):
+            c[0] = c0
+            c[1] = c1
+            return 0, FALLBACK, 0.0, 0.0, 0.0
+        if pt <= pi + 1e-4 * slope or -slope <= 1e-13 * scale:
+            c0 = t0
+            c1 = t1
+            if last:
+                c[0] = c0
+                c[1] = c1
+                return it + 1, OK, ebt, est, wt
+            pi, eb, es, w, g0, g1, h00, h10, h11 = pt, ebt, est, wt, q0, q1, k00, k10, k11
+            continue
+        t = 0.5
+        while True:
+            t0 = c0 + t * d0
+            t1 = c1 + t * d1
+            r = _energy3c(t0, t1, tab, kb, F, False, pw)
+            if not _safe(t0, t1, r[2], r[0]):
+                return 0, FALLBACK, 0.0, 0.0, 0.0
+            if r[0] <= pi + 1e-4 * t * slope:
+                break
+            t *= 0.5
+            if t < 1e-14:
+                c[0] = c0
+                c[1] = c1
+                return it, LINE_SEARCH, eb, es, w
+        c0 = t0
+        c1 = t1
+        pi, eb, es, w, g0, g1, h00, h10, h11 = _energy3c(c0, c1, tab, kb, F, True, pw)
+        if not _safe(c0, c1, es, pi):
+            return 0, FALLBACK, 0.0, 0.0, 0.0
+    c[0] = c0
+    c[1] = c1
+    return _MAXIT, MAX_ITER, eb, es, w
+
+
+@njit(cache=True)
+def _post3c(c, l, nl, cos_term, tab, eb, es, wk, out, react, fq):
+    """_post at p = 3 in closed form, given the energies at c. The layer reactions use _post's Gauss
+    rule (from the table): their integrand carries sqrt(1 + v'^2), which no rule integrates exactly."""
+    c0 = c[0]
+    c1 = c[1]
+    a = 0.5 * c0 - 0.5 * _R3 * c1
+    b = c1 * (1.0 / _R3)
+    out[LOAD] = c0 * tab[_NTAB - 2] + c1 * tab[_NTAB - 1]
+    out[U_BEND] = eb
+    out[U_SPRING] = es
+    out[WORK] = wk
+    out[TIP] = a + b
+    out[TIP_DVDZ] = c0 / l  # dv/ds(1) = 2a + 3b = c0
+    # maximum |v| as _post finds it on the 65-point grid s = k/64: v' = s (2a + 3b s) vanishes only at
+    # s = 0 and s* = -2a/(3b), so the grid maximum is at the grid points around s* or at s = 1; an
+    # interior grid maximum is refined to s* (where _post's Newton on dv/ds = 0 converges)
+    ss = -2.0 * a / (3.0 * b) if b != 0.0 else -1.0
+    kbest = 0
+    vbest = 0.0
+    lo = int(ss * 64.0) if 0.0 < ss < 1.0 else 64
+    k = lo
+    while k <= 64:  # the candidates lo, lo + 1, 64 in _post's order (it keeps the first strict maximum)
+        s = k / 64.0
+        v = s * s * (a + b * s)
+        if abs(v) > abs(vbest):
+            vbest = v
+            kbest = k
+        k = k + 1 if k == lo else (64 if k < 64 else 65)
+    sbest = kbest / 64.0
+    if 0 < kbest < 64:
+        v = ss * ss * (a + b * ss)
+        if abs(v) > abs(vbest):
+            vbest = v
+            sbest = ss
+    out[VMAX] = vbest
+    out[ZMAX] = sbest * l
+    nq = 11 if cos_term else 7
+    il = 1.0 / l
+    a2 = 2.0 * a * il  # dv/dz = s (a2 + b3 s)
+    b3 = 3.0 * b * il
+    q = _NTAB
+    for j in range(nl):
+        # the points first (independent: the compiler can vectorise the square roots), then the sum
+        for g in range(nq):
+            s = tab[q + g]
+            v = s * s * (a + b * s)
+            if cos_term:
+                dd = s * (a2 + b3 * s)
+                x = v * np.sqrt(1.0 + dd * dd)
+            else:
+                x = v
+            fq[g] = tab[q + nl * nq + g] * (x + x * x * x)
+        r = 0.0
+        for g in range(nq):
+            r += fq[g]
+        react[j] = r
+        q += nq
+
+
 def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
-                 A, Ad, GX, GW, grid, gphi, C, S, R, fast):
+                 A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate):
+    """Samples start..stop-1. The model arrays KB, L, Z3, T, K have one row per sample, or a single
+    row that every sample shares (a batch that varies the force only). closed: order 3 through the
+    closed-form energy (cubic_table); estimate: also solve order p + 1 for error_estimate (else NaN)."""
     nl = T.shape[1]
     wk = _workspace(pmax + 1, nl)
     c = np.zeros(pmax)
     c2 = np.zeros(pmax)
+    tab = np.empty(table_size(nl, cos_term))
+    mu = np.empty(66)
+    pw = np.empty(18)
+    fq = np.empty(11)
+    out = np.full(NCOLS, np.nan)  # one sample's scalars (NaN where a failed sample has none)
+    shared = L.shape[0] == 1
+    cubic = closed and order == 3
+    if cubic and shared:
+        cubic_table(L[0], T[0], K[0], Z3[0], cos_term, tab, mu, GX, GW)
     for m in range(start, stop):
+        g = 0 if shared else m
         for i in range(pmax):
             c[i] = 0.0
         p = order
-        it, st = _newton_any(p, c, F[m], KB[m], L[m], Z3[m], T[m], K[m], cos_term, A, Ad, GX, GW, wk, fast)
-        est = np.inf
+        gauss = True
+        if cubic:
+            if not shared:
+                cubic_table(L[g], T[g], K[g], Z3[g], cos_term, tab, mu, GX, GW)
+            it, st, eb, es, wk_ = _newton3c(c, F[m], KB[g], tab, pw)
+            gauss = st == FALLBACK
+            if gauss:
+                c[0] = 0.0
+                c[1] = 0.0
+        if gauss:
+            it, st = _newton_any(p, c, F[m], KB[g], L[g], Z3[g], T[g], K[g], cos_term, A, Ad, GX, GW,
+                                 wk, fast)
+        est = np.inf if estimate else np.nan
         prev = np.inf  # change from order p - 1 to p
-        while st == OK:
+        while estimate and st == OK:
             # error estimate: sup-norm change of v on the grid when the order is raised by one
             for i in range(pmax):
                 c2[i] = c[i]
             c2[p - 1] = 0.0
-            it2, st2 = _newton_any(p + 1, c2, F[m], KB[m], L[m], Z3[m], T[m], K[m], cos_term,
-                               A, Ad, GX, GW, wk, fast)
+            it2, st2 = _newton_any(p + 1, c2, F[m], KB[g], L[g], Z3[g], T[g], K[g], cos_term,
+                                   A, Ad, GX, GW, wk, fast)
             if st2 != OK:
                 st = st2
                 break
@@ -557,19 +899,28 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
                 c[i] = c2[i]
             p += 1
             it = it2
-        S[m, ORDER] = p
-        S[m, ITER] = it
-        S[m, STATUS] = st
-        S[m, ERR] = est
+        out[ORDER] = p
+        out[ITER] = it
+        out[STATUS] = st
+        out[ERR] = est
         for i in range(pmax - 1):
             C[m, i] = c[i] if i < p - 1 else 0.0
         if st == OK:
-            _post_any(p, c, F[m], KB[m], L[m], Z3[m], T[m], K[m], cos_term, A, Ad, GX, GW, grid, gphi,
-                  wk, S[m], R[m], fast)
+            if p == 3 and not gauss:
+                _post3c(c, L[g], nl, cos_term, tab, eb, es, wk_, out, R[m], fq)
+            else:
+                _post_any(p, c, F[m], KB[g], L[g], Z3[g], T[g], K[g], cos_term, A, Ad, GX, GW, grid,
+                          gphi, wk, out, R[m], fast)
+        else:
+            for i in range(TIP, ERR):
+                out[i] = np.nan
+        # S is (NCOLS, N): every output column contiguous, ready to be handed out without a copy
+        for i in range(NCOLS):
+            S[i, m] = out[i]
 
 
 def _solve_all(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, A, Ad, GX, GW, grid, gphi,
-               C, S, R, chunks, fast):
+               C, S, R, chunks, fast, closed, estimate):
     N = F.shape[0]
     size = (N + chunks - 1) // chunks
     for b in prange(chunks):
@@ -577,7 +928,7 @@ def _solve_all(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, A, Ad, GX, 
         stop = min(N, start + size)
         if start < stop:
             _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
-                         A, Ad, GX, GW, grid, gphi, C, S, R, fast)
+                         A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate)
 
 
 _solve_range = njit(cache=True)(_solve_range)

@@ -2,8 +2,10 @@
 
 Every answer carries `error_estimate_mm` (sup over z of the change of v(z) when the order is raised by
 one) and `order_converged` (error estimate <= tol_mm: about the trial-function order p, not the solve;
-`converged` is its old name, kept for parsers). A Newton solve that does not converge raises
-ConvergenceError; no unconverged answer is ever returned.
+`converged` is its old name, kept for parsers). `solve_batch(..., error_estimate=False)` skips the
+order p + 1 solve: the estimate is then NaN, `error_estimated` is False and so is `order_converged`
+(not shown). A Newton solve that does not converge raises ConvergenceError; no unconverged answer is
+ever returned.
 """
 
 from __future__ import annotations
@@ -23,6 +25,9 @@ _PARALLEL_MIN = 2_000  # below this a thread pool costs more than it saves
 # Unrolled kernels for orders 3 and 4 (kernel._energy2/3). False selects the generic reference loops,
 # which the tests and benchmarks/bench_ritz.py compare against.
 _FAST = True
+# With _FAST, order 3 through its closed-form energy (kernel.cubic_table; issue 18). False keeps the
+# unrolled Gauss-point path for order 3 (the previous version, for the tests and the benchmark).
+_CLOSED = True
 
 
 @dataclass(frozen=True)
@@ -47,11 +52,12 @@ class RitzResult:
     error_estimate_mm: float
     converged: bool  # error_estimate_mm <= tol_mm (the order, not Newton); alias order_converged
     free_length_mm: float
+    error_estimated: bool = True  # False: solved without the order p + 1 solve, error_estimate_mm NaN
 
     @property
     def order_converged(self) -> bool:
-        """error_estimate_mm <= tol_mm: raising the order p changes v(z) by less than tol. Newton itself
-        always converged (it raises ConvergenceError otherwise)."""
+        """error_estimate_mm <= tol_mm: raising the order p changes v(z) by less than tol (False when no
+        estimate was computed). Newton itself always converged (it raises ConvergenceError otherwise)."""
         return self.converged
 
     @property
@@ -123,6 +129,7 @@ class BatchResult:
     converged: np.ndarray  # error_estimate_mm <= tol_mm per sample (the order); alias order_converged
     free_length_mm: np.ndarray
     layer_names: tuple
+    error_estimated: bool = True  # False: error_estimate=False, estimates NaN, order_converged False
 
     @property
     def order_converged(self) -> np.ndarray:
@@ -171,6 +178,7 @@ class BatchResult:
             error_estimate_mm=float(self.error_estimate_mm[m]),
             converged=bool(self.converged[m]),
             free_length_mm=float(self.free_length_mm[m]),
+            error_estimated=self.error_estimated,
         )
 
     def results(self) -> list[RitzResult]:
@@ -203,14 +211,15 @@ def _tables():
 _TABLES = None
 
 
-def _run(F, KB, L, Z3, T, K, cos_term, order, auto, max_order, tol, parallel):
+def _run(F, KB, L, Z3, T, K, cos_term, order, auto, max_order, tol, parallel, estimate=True):
+    """F has one entry per sample; KB, L, Z3, T, K one row per sample or one shared row."""
     global _TABLES
     if _TABLES is None:
         _TABLES = _tables()
     N = F.shape[0]
     pmax = max_order if auto else order
-    C = np.empty((N, pmax))
-    S = np.empty((N, kernel.NCOLS))
+    C = np.empty((N, pmax - 1))  # the kernel writes pmax - 1 coefficients
+    S = np.empty((kernel.NCOLS, N))  # one row per output column
     R = np.empty((N, T.shape[1]))
     if parallel is None:
         parallel = N >= _PARALLEL_MIN
@@ -219,17 +228,19 @@ def _run(F, KB, L, Z3, T, K, cos_term, order, auto, max_order, tol, parallel):
         fn, chunks = kernel.solve_parallel, min(N, 8 * get_num_threads())
     else:
         fn, chunks = kernel.solve_serial, 1
-    fn(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, *_TABLES, C, S, R, chunks, _FAST)
-    status = S[:, kernel.STATUS]
+    fn(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, *_TABLES, C, S, R, chunks, _FAST,
+       _FAST and _CLOSED, estimate)
+    status = S[kernel.STATUS]
     if status.any():
         bad = np.flatnonzero(status != kernel.OK)
         m = bad[0]
+        g = 0 if L.shape[0] == 1 else m
         why = {kernel.MAX_ITER: "iteration limit", kernel.LINE_SEARCH: "line search failed",
                kernel.NOT_FINITE: "non-finite energy"}[int(status[m])]
         raise ConvergenceError(
             f"Ritz Newton did not converge for {bad.size} of {N} samples ({why}); first: sample {m}, "
-            f"force {F[m]} N, free length {L[m]} mm, EI/l^3 {KB[m]} N/mm")
-    return C[:, : pmax - 1], S, R
+            f"force {F[m]} N, free length {L[g]} mm, EI/l^3 {KB[g]} N/mm")
+    return C, S, R
 
 
 def solve(force: float, model: RitzModel | None = None, order=3, tol_mm: float = DEFAULT_TOL_MM,
@@ -247,7 +258,7 @@ def solve(force: float, model: RitzModel | None = None, order=3, tol_mm: float =
 
 
 def _result(F, C, S, R, model, m, tol) -> RitzResult:
-    s = S[m]
+    s = S[:, m]
     p = int(s[kernel.ORDER])
     c = C[m, : p - 1]
     a = (c @ basis.monomial_matrix(p)) / model.free_length_mm ** np.arange(p + 1)
@@ -283,7 +294,7 @@ def solve_forces(forces, model: RitzModel | None = None, order=3, tol_mm: float 
     tol = check_number("tol_mm", tol_mm, gt=0)
     F = np.array(forces, dtype=float)
     N = F.size
-    KB, L, Z3, T, K = (np.repeat(a, N, axis=0) for a in model._arrays)
+    KB, L, Z3, T, K = model._arrays  # one row, shared by every force
     C, S, R = _run(F, KB, L, Z3, T, K, model.cos_term, p, auto, max_order, tol, None)
     return [_result(F, C, S, R, model, m, tol) for m in range(N)]
 
@@ -304,21 +315,39 @@ def _array(field: str, value, *, gt=None):
     return a
 
 
+def _rows(a, ng, nl):
+    """(ng, nl) C-contiguous float64 from (nl,), (1, nl) or (ng, nl) (a filled copy when broadcast:
+    ascontiguousarray of a broadcast view is ~10x slower)."""
+    if a.shape == (ng, nl):
+        return np.ascontiguousarray(a, dtype=float)
+    out = np.empty((ng, nl))
+    out[...] = a
+    return out
+
+
 def solve_batch(force, *, diameter_mm=None, free_length_mm=None, youngs_modulus_MPa=None,
                 thickness_mm=None, k_N_per_mm2=None, load_point_mm=None, model: RitzModel | None = None,
                 order=3, tol_mm: float = DEFAULT_TOL_MM, max_order: int = 16,
-                parallel: bool | None = None) -> BatchResult:
+                parallel: bool | None = None, error_estimate: bool = True) -> BatchResult:
     """Solve N samples in one compiled call; every argument broadcasts to N.
 
     force: (N,) N. diameter_mm, free_length_mm, youngs_modulus_MPa, load_point_mm: scalars or (N,)
     (load_point_mm None = free end). thickness_mm, k_N_per_mm2: (layers,) or (N, layers), layers
-    stacked from the bone. Parameters not given come from `model` (default RitzModel()).
+    stacked from the bone. Parameters not given come from `model` (default RitzModel()). When only the
+    force varies, the model's order-3 energy forms are computed once for the batch.
+    error_estimate=False skips the order p + 1 solve behind error_estimate_mm (about half the cost at
+    p = 3): the estimates are then NaN, `error_estimated` False and `order_converged` False.
     Runs on all Numba threads for N >= 2000 (set NUMBA_NUM_THREADS to limit).
     """
     model = RitzModel() if model is None else model
     p, auto = parse_order(order)
     max_order = int(check_number("max_order", max_order, ge=3, le=basis.P_MAX))
     tol = check_number("tol_mm", tol_mm, gt=0)
+    if not isinstance(error_estimate, (bool, np.bool_)):
+        raise InputError("error_estimate", f"must be true or false, got {error_estimate!r}")
+    if auto and not error_estimate:
+        raise InputError("error_estimate", "order='auto' raises the order by the error estimate: it "
+                         "cannot be switched off")
     F = _array("force_N", force)
     d = _array("diameter_mm", model.diameter_mm if diameter_mm is None else diameter_mm, gt=0)
     l = _array("free_length_mm", model.free_length_mm if free_length_mm is None else free_length_mm, gt=0)
@@ -331,55 +360,66 @@ def solve_batch(force, *, diameter_mm=None, free_length_mm=None, youngs_modulus_
     if t.ndim == 0 or k.ndim == 0 or t.shape[-1] != k.shape[-1]:
         raise InputError("thickness_mm/k_N_per_mm2", f"need matching trailing layer axes, got "
                          f"{t.shape} and {k.shape}")
+    z3 = None if load_point_mm is None else _array("load_point_mm", load_point_mm, gt=0)
     try:
-        N = np.broadcast_shapes(F.shape, d.shape, l.shape, E.shape, t.shape[:-1], k.shape[:-1],
-                                np.shape(load_point_mm) if load_point_mm is not None else ())
+        shape_model = np.broadcast_shapes(d.shape, l.shape, E.shape, t.shape[:-1], k.shape[:-1],
+                                          () if z3 is None else z3.shape)
+        N = np.broadcast_shapes(F.shape, shape_model)
     except ValueError as exc:
         raise InputError("solve_batch", f"arguments do not broadcast to one sample axis: {exc}") from None
     if len(N) > 1:
         raise InputError("solve_batch", f"samples must be one axis, got shape {N}")
     n = N[0] if N else 1
+    # one model row for all samples when only the force varies, else one row per sample
+    ng = 1 if math.prod(shape_model) == 1 else n
     nl = t.shape[-1]
-    F, d, l, E = (np.ascontiguousarray(np.broadcast_to(a, (n,)), dtype=float) for a in (F, d, l, E))
-    T = np.ascontiguousarray(np.broadcast_to(t, (n, nl)), dtype=float)
-    K = np.ascontiguousarray(np.broadcast_to(k, (n, nl)), dtype=float)
-    too_thick = T.sum(axis=1) > l * (1 + 1e-12)  # round-off of thickness fractions of l
+    F = np.ascontiguousarray(np.broadcast_to(F, (n,)), dtype=float)
+    d, l, E = (np.ascontiguousarray(np.broadcast_to(a.reshape(-1) if a.size == 1 else a, (ng,)),
+                                    dtype=float) for a in (d, l, E))
+    T, K = _rows(t, ng, nl), _rows(k, ng, nl)
+    total = T[:, 0].copy()  # column by column: a sum over a short last axis is ~20x slower in NumPy
+    for j in range(1, nl):
+        total += T[:, j]
+    too_thick = total > l * (1 + 1e-12)  # round-off of thickness fractions of l
     if too_thick.any():
         m = np.flatnonzero(too_thick)[0]
         raise InputError("thickness_mm", f"total layer thickness must be <= free_length_mm, got "
                          f"{T[m].sum()} > {l[m]} at index {m}")
-    if load_point_mm is None:
+    if z3 is None:
         Z3 = l.copy()
     else:
-        Z3 = np.ascontiguousarray(np.broadcast_to(_array("load_point_mm", load_point_mm, gt=0), (n,)),
+        Z3 = np.ascontiguousarray(np.broadcast_to(z3.reshape(-1) if z3.size == 1 else z3, (ng,)),
                                   dtype=float)
         over = Z3 > l
         if over.any():
             m = np.flatnonzero(over)[0]
             raise InputError("load_point_mm", f"must be in (0, free_length_mm], got {Z3[m]} > {l[m]} "
                              f"at index {m}")
-    KB = E * (np.pi * d**4 / 64.0) / l**3
+    d2 = d * d  # products, not np.power (a libm pow per element for exponents other than 2)
+    KB = E * (np.pi * (d2 * d2) / 64.0) / (l * l * l)
     # one compiled signature only: C-contiguous, writeable float64 (broadcast views are read-only)
     F, KB, l, Z3, T, K = (np.require(a, np.float64, ["C", "W"]) for a in (F, KB, l, Z3, T, K))
-    C, S, R = _run(F, KB, l, Z3, T, K, model.cos_term, p, auto, max_order, tol, parallel)
+    C, S, R = _run(F, KB, l, Z3, T, K, model.cos_term, p, auto, max_order, tol, parallel,
+                   bool(error_estimate))
     return BatchResult(
         force_N=F,
-        tip_deflection_mm=S[:, kernel.TIP].copy(),
-        load_point_deflection_mm=S[:, kernel.LOAD].copy(),
-        max_deflection_mm=S[:, kernel.VMAX].copy(),
-        z_max_mm=S[:, kernel.ZMAX].copy(),
-        tip_slope_rad=np.arctan(S[:, kernel.TIP_DVDZ]),
+        tip_deflection_mm=S[kernel.TIP],
+        load_point_deflection_mm=S[kernel.LOAD],
+        max_deflection_mm=S[kernel.VMAX],
+        z_max_mm=S[kernel.ZMAX],
+        tip_slope_rad=np.arctan(S[kernel.TIP_DVDZ]),
         spring_reaction_N=R,
-        energy_Nmm=S[:, kernel.U_BEND] + S[:, kernel.U_SPRING] - S[:, kernel.WORK],
-        bending_energy_Nmm=S[:, kernel.U_BEND].copy(),
-        spring_energy_Nmm=S[:, kernel.U_SPRING].copy(),
-        work_Nmm=S[:, kernel.WORK].copy(),
-        basis_coefficients_mm=np.ascontiguousarray(C),
-        order=S[:, kernel.ORDER].astype(int),
-        iterations=S[:, kernel.ITER].astype(int),
-        error_estimate_mm=S[:, kernel.ERR].copy(),
-        converged=S[:, kernel.ERR] <= tol,
-        free_length_mm=l,
+        energy_Nmm=S[kernel.U_BEND] + S[kernel.U_SPRING] - S[kernel.WORK],
+        bending_energy_Nmm=S[kernel.U_BEND],
+        spring_energy_Nmm=S[kernel.U_SPRING],
+        work_Nmm=S[kernel.WORK],
+        basis_coefficients_mm=C,
+        order=S[kernel.ORDER].astype(int),
+        iterations=S[kernel.ITER].astype(int),
+        error_estimate_mm=S[kernel.ERR],
+        converged=S[kernel.ERR] <= tol,
+        free_length_mm=l if ng == n else np.full(n, l[0]),
         layer_names=tuple(la.name for la in model.layers) if nl == len(model.layers)
         else tuple(f"layer{j}" for j in range(nl)),
+        error_estimated=bool(error_estimate),
     )
