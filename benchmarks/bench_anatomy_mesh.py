@@ -80,6 +80,13 @@ def table(rows) -> str:
             f"{100 * r['worst_volume_error']:+.2f} % ({r['worst_volume_tissue']})",
             f"{r['min_dice_bone_muscle']:.3f} ({r['min_dice_tissue']})", f"{r['hausdorff95_voxels']:.2f}",
             f"{r['mesh_cpu_s']:.1f}", f"{r['segment_cpu_s']:.1f}"]))
+    stages = [r for r in rows if "cpu_s" in r["info"]]
+    if stages:   # where the smooth route's CPU goes (geometry.smooth records it per stage)
+        keys = list(stages[0]["info"]["cpu_s"])
+        lines += ["", " | ".join(["source", "method"] + [f"{k} CPU s" for k in keys]),
+                  " | ".join("---" for _ in range(len(keys) + 2))]
+        lines += [" | ".join([r["source"], r["method"]] + [f"{r['info']['cpu_s'][k]:.1f}" for k in keys])
+                  for r in stages]
     return "\n".join(lines)
 
 

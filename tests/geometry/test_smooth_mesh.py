@@ -7,8 +7,9 @@ import pytest
 from labelmaps import ball, make_seg, nested_boxes
 from needletissue.errors import InputError
 from needletissue.geometry.fidelity import mesh_fidelity
-from needletissue.geometry.smooth import edge_face_crossings, fix_edge_contacts, unique_edges
-from needletissue.geometry.tetmesh import MeshConfig, face_pairs, tet_mesh
+from needletissue.geometry.smooth import (edge_face_crossings, fix_edge_contacts, relocate_nodes, sliding_normals,
+                                          unique_edges, vol_min_dihedral)
+from needletissue.geometry.tetmesh import MeshConfig, face_pairs, tet_mesh, tet_quality, unique_rows
 
 H = 2.0                                    # mm voxels
 RADII = {"cancellous_bone": 6.0, "gluteus_maximus": 10.0, "adipose": 14.0}   # voxels
@@ -152,3 +153,74 @@ def test_mesh_command_smooth_method(tmp_path, monkeypatch, capsys):
                         "--method", "marching")
     assert code == 2 and "method" in err and "Traceback" not in err
 
+
+
+def test_unique_rows_is_numpys_unique_by_rows():
+    rows = np.random.default_rng(3).integers(0, 20, (5000, 3))
+    _, first, inv, cnt = np.unique(rows, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    f2, inv2, cnt2 = unique_rows(rows)
+    assert np.array_equal(first, f2) and np.array_equal(inv.ravel(), inv2) and np.array_equal(cnt, cnt2)
+
+
+def test_vol_min_dihedral_matches_tet_quality_and_the_regular_tetrahedron():
+    P = np.random.default_rng(4).normal(size=(500, 4, 3))
+    q = tet_quality(P.reshape(-1, 3), np.arange(2000).reshape(-1, 4))
+    vol, md = vol_min_dihedral(P)
+    pos = q["volume"] > 0
+    assert np.allclose(vol, q["volume"]) and np.allclose(md[pos], q["min_dihedral"][pos])
+    reg = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    reg = reg[[0, 2, 1, 3]] if vol_min_dihedral(reg)[0] < 0 else reg
+    assert vol_min_dihedral(reg)[1] == pytest.approx(np.degrees(np.arccos(1 / 3)))
+
+
+def _box_mesh():
+    import pyvista as pv
+    import tetgen
+
+    box = pv.Box(bounds=(0, 10, 0, 10, 0, 10), level=3).triangulate()
+    tg = tetgen.TetGen(np.asarray(box.points, float), box.regular_faces.astype(np.int32))
+    nodes, elem = tg.tetrahedralize(quality=True, minratio=1.5, quiet=True)[:2]
+    elem = np.asarray(elem, np.int64)[:, :4]
+    v = tet_quality(nodes, elem)["volume"]
+    elem[v < 0] = elem[v < 0][:, [0, 2, 1, 3]]
+    return np.asarray(nodes, float), elem
+
+
+def test_sliding_normals_are_face_normals_inside_faces_and_nan_on_edges_and_corners():
+    x, c = _box_mesh()
+    _, free, faces = face_pairs(c, np.zeros(len(c), int))
+    n = sliding_normals(x, faces[free], np.zeros(len(free), int))
+    on = np.unique(faces[free])
+    n_planes = np.sum(np.isclose(x[on], 0) | np.isclose(x[on], 10), axis=1)   # 1 face, 2 edge, 3 corner
+    ok = np.isfinite(n[on, 0])
+    assert ok[n_planes == 1].all() and not ok[n_planes > 1].any()
+    face_nodes = on[n_planes == 1]
+    assert np.allclose(np.abs(n[face_nodes]).max(1), 1.0)         # the normal of the box face
+    assert np.isnan(n[np.setdiff1d(np.arange(len(x)), on)]).all()  # interior nodes do not slide
+
+
+def test_relocation_slides_a_boundary_node_back_in_its_plane():
+    x, c = _box_mesh()
+    _, free, faces = face_pairs(c, np.zeros(len(c), int))
+    on = np.unique(faces[free])
+    fixed = np.zeros(len(x), bool)
+    fixed[on] = True
+    slide = sliding_normals(x, faces[free], np.zeros(len(free), int))
+    md0 = vol_min_dihedral(x[c])[1].min()
+    # drag one node on the face z = 0 inside its plane until one of its elements becomes a sliver
+    v = on[np.isfinite(slide[on, 0]) & np.isclose(x[on, 2], 0)][0]
+    y = x.copy()
+    best = None
+    for a in np.linspace(0, 2 * np.pi, 24, endpoint=False):
+        for t in np.linspace(0.1, 3.0, 30):
+            y[v] = x[v] + t * np.array([np.cos(a), np.sin(a), 0.0])
+            vol, md = vol_min_dihedral(y[c])
+            if (vol > 0).all() and (best is None or md.min() < best[1]):
+                best = (y[v].copy(), md.min())
+    assert best[1] < 5.0
+    y[v] = best[0]
+    z, moved = relocate_nodes(y, c, fixed, target_deg=md0, slide=slide)
+    vol, md = vol_min_dihedral(z[c])
+    assert moved >= 1 and (vol > 0).all() and md.min() > 2 * best[1]
+    assert z[v, 2] == pytest.approx(0.0, abs=1e-12)                # it stayed on the face z = 0
+    assert np.array_equal(z[fixed & np.isnan(slide[:, 0])], y[fixed & np.isnan(slide[:, 0])])

@@ -341,6 +341,21 @@ def bone_surfaces_by_bone(mesh: TetMesh, bones_img, depth: float) -> dict[str, n
     return {f"bone_surface_{name}": faces[bid == i] for name, i in BONE_IDS.items() if np.any(bid == i)}
 
 
+def unique_rows(rows: np.ndarray):
+    """np.unique(rows, axis=0, return_index, return_inverse, return_counts) for an integer (n, k) array,
+    same groups in the same (lexicographic) order; by lexsort, because np.unique(axis=0) sorts a void
+    view and took 15-40 s on the 4.7 M faces of a 1.2 M-tetrahedron mesh. Returns (first, inverse, counts)."""
+    if len(rows) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    order = np.lexsort(rows.T[::-1])
+    s = rows[order]
+    new = np.concatenate([[True], np.any(s[1:] != s[:-1], axis=1)])
+    gid = np.cumsum(new) - 1
+    inv = np.empty(len(rows), np.int64)
+    inv[order] = gid
+    return order[new], inv, np.bincount(gid)
+
+
 def face_pairs(cells: np.ndarray, tag: np.ndarray):
     """Faces of positive tetrahedra: (ids of faces between different tags, ids of free faces, faces).
 
@@ -348,8 +363,7 @@ def face_pairs(cells: np.ndarray, tag: np.ndarray):
     loc = [(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)]
     faces = np.concatenate([cells[:, f] for f in loc])
     owner = np.tile(np.arange(len(cells)), 4)
-    _, inv, cnt = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    _, inv, cnt = unique_rows(np.sort(faces, axis=1))
     order = np.argsort(inv, kind="stable")
     pair = order[cnt[inv[order]] == 2].reshape(-1, 2)
     inter = pair[tag[owner[pair[:, 0]]] != tag[owner[pair[:, 1]]], 0]
@@ -365,8 +379,7 @@ def interface_surfaces(mesh: TetMesh) -> dict[str, np.ndarray]:
     faces = np.concatenate([mesh.cells[:, f] for f in loc])
     owner = np.tile(np.arange(len(mesh.cells)), 4)
     key = np.sort(faces, axis=1)
-    _, first, inv, cnt = np.unique(key, axis=0, return_index=True, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    _, inv, cnt = unique_rows(key)
     out = {"boundary": faces[cnt[inv] == 1]}
     # interior faces: pair the two owners
     order = np.argsort(inv, kind="stable")
