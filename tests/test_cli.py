@@ -32,6 +32,17 @@ def test_console_entry_point_version():
     assert r.returncode == 0 and __version__ in r.stdout
 
 
+def test_python_dash_m_runs_the_command():
+    """`python -m needletissue.cli ...` (the documented way to run from a checkout) runs the command; it
+    used to import the module, do nothing and exit 0."""
+    r = subprocess.run([sys.executable, "-m", "needletissue.cli", "--version"], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0 and __version__ in r.stdout
+    r = subprocess.run([sys.executable, "-m", "needletissue.cli", "ritz", "--force", "abc"], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2 and "--force" in r.stderr
+
+
 def _main(*args, **kw):
     return subprocess.run([sys.executable, "-c", "from needletissue.cli import main; main()", *args],
                           capture_output=True, text=True, timeout=120, **kw)

@@ -93,3 +93,7 @@ def main() -> None:
     except typer.Abort:
         _error("aborted", 130)
     sys.exit(rv if isinstance(rv, int) else 0)
+
+
+if __name__ == "__main__":  # python -m needletissue.cli
+    main()
