@@ -31,7 +31,8 @@ def call_in_child(target: str, kwargs: dict, *, what: str) -> dict:
     (subclasses of NeedleTissueError that take one message); anything else becomes ChildCrash naming `what`.
     """
     src = str(Path(__file__).resolve().parents[2])  # the directory holding `needletissue`
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (src, os.environ.get("PYTHONPATH")) if p))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (src, os.environ.get("PYTHONPATH")) if p),
+               **{_PARENT: str(os.getpid())})
     with tempfile.TemporaryDirectory(prefix="needletissue-child-") as tmp:
         answer = Path(tmp) / "answer.json"
         request = json.dumps({"target": target, "kwargs": kwargs, "answer": str(answer)})
@@ -65,6 +66,9 @@ def _error_class(qualname: str):
     return cls if isinstance(cls, type) and issubclass(cls, NeedleTissueError) else ChildCrash
 
 
+_PARENT = "NEEDLETISSUE_CHILD_PARENT"  # the pid of the process that started the child
+
+
 def _die_with_parent() -> None:
     try:
         import ctypes
@@ -72,6 +76,12 @@ def _die_with_parent() -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # not Linux: the parent's kill on interrupt still applies
         pass
+    # PDEATHSIG only covers a parent that dies from now on: one killed while this interpreter started
+    # (SIGTERM right after the mesher was launched) left the child meshing on as an orphan, writing the
+    # mesh into the output folder after the command had exited.
+    parent = os.environ.get(_PARENT)
+    if parent and os.getppid() != int(parent):
+        os._exit(1)
 
 
 def main() -> None:
