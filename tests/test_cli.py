@@ -62,6 +62,19 @@ def test_parser_errors_are_one_line_like_ours(args, named):
     assert "╭" not in r.stderr and "Traceback" not in r.stderr and r.stdout == ""
 
 
+@pytest.mark.parametrize("command", [["fe", "needle", "--force", "10", "--no-ritz"],
+                                     ["fe", "pelvis", "--mesh-size", "8", "--order", "1", "--needle-size", "3"]])
+@pytest.mark.parametrize("where", ["file", "file/sub"])
+def test_fe_out_on_a_file_is_one_input_error_before_computing(tmp_path, command, where):
+    # was: `fe needle` a gmsh child failure (exit 1) naming no option, `fe pelvis` a traceback after the solve
+    (tmp_path / "file").write_text("keep")
+    r = _main(*command, "--out", str(tmp_path / where))
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: --out") and "Traceback" not in r.stderr, r.stderr
+    assert (tmp_path / "file").read_text() == "keep" and sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
 def test_exit_codes_pass_through():
     assert _main("--help").returncode == 0 and _main("ritz", "--force", "10", "--json").returncode == 0
 
