@@ -187,10 +187,11 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     t0 = time.perf_counter()
     ritz = _ritz_tips(cfg) if cfg.ritz else {}   # first: cheap, and fails fast on bad input
     with tempfile.TemporaryDirectory() as tmp:
-        msh = Path(mesh_path) if mesh_path else (Path(out_dir) / "needle_model.msh" if out_dir
-                                                else Path(tmp) / "needle_model.msh")
+        # not into out_dir: an interrupted or failed run leaves no mesh there (write_outputs adds it)
+        msh = Path(mesh_path) if mesh_path else Path(tmp) / "needle_model.msh"
         info = mesh_needle_model(g, msh, order=cfg.order)  # order 2: midside nodes on the true cylinder
         mesh = TaggedMesh.read(msh)
+        mesh_file = msh.read_bytes() if out_dir is not None else None
     t_mesh = time.perf_counter() - t0
     if mesh_hook is not None:
         mesh = mesh_hook(mesh)
@@ -257,7 +258,7 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     if report is not None:
         out.extra.update(report(out))
     if out_dir is not None:
-        write_outputs(out, Path(out_dir))
+        write_outputs(out, Path(out_dir), mesh=mesh_file)
     return out
 
 
@@ -330,12 +331,69 @@ def _ritz_tips(cfg: NeedleModelConfig) -> dict[float, dict[str, object]]:
     return out
 
 
-def write_outputs(result: NeedleModelResult, out_dir: Path) -> None:
-    """VTU per force, results.json + config.toml + versions.json, figures (deformed model, curves)."""
-    from needletissue.runinfo import write_run_files
+def write_outputs(result: NeedleModelResult, out_dir: Path, mesh: bytes | None = None) -> None:
+    """VTU (+ .vtm and its region pieces) per force, needle.pvd, results.json + config.toml +
+    versions.json, figures (deformed model, curves), and the gmsh mesh `mesh` as needle_model.msh.
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    All are written into a hidden folder inside out_dir and moved in when complete, so a run stopped
+    meanwhile (SIGTERM, Ctrl-C, a failed render) leaves out_dir as it was, not half a set of files. The
+    per-force files of an earlier run into the same folder that this run did not write (other forces)
+    are removed: listed in no needle.pvd or results.json, they passed for this run's."""
+    import os
+    import shutil
+    import tempfile
+
+    from needletissue.runinfo import current_umask, make_dir, write_atomic
+
+    made = not out_dir.exists()
+    make_dir(out_dir)
+    stage = Path(tempfile.mkdtemp(prefix=".needle-partial-", dir=out_dir))
+    try:
+        os.chmod(stage, 0o777 & ~current_umask())
+        if mesh is not None:
+            write_atomic(stage / "needle_model.msh", mesh)
+        _write_outputs(result, stage)
+        _publish(stage, out_dir)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        if made:  # nor an empty folder of this run
+            shutil.rmtree(out_dir, ignore_errors=True) if not any(out_dir.iterdir()) else None
+        raise
+    shutil.rmtree(stage, ignore_errors=True)
+
+
+_PER_FORCE = r"needle_[-+0-9.e]+N(\.vtu|\.vtm)?"  # needle_<force:g>N.vtu / .vtm / pieces folder
+
+
+def _publish(stage: Path, out_dir: Path) -> None:
+    """Move stage's entries into out_dir (folders and VTUs first, results.json last); remove the
+    per-force entries of an earlier run that stage does not have."""
+    import os
+    import re
+    import shutil
+
+    new = {p.name for p in stage.iterdir()}
+    for old in out_dir.iterdir():
+        if old.name not in new and re.fullmatch(_PER_FORCE, old.name):
+            shutil.rmtree(old) if old.is_dir() and not old.is_symlink() else old.unlink()
+    rank = {".vtu": 1, ".vtm": 2, ".pvd": 3, ".json": 5}
+    for p in sorted(stage.iterdir(), key=lambda p: (0 if p.is_dir() else rank.get(p.suffix, 4),
+                                                    p.name == "results.json", p.name)):
+        dest = out_dir / p.name
+        if p.is_dir() and dest.is_dir() and not dest.is_symlink():
+            old = dest.with_name(f".{dest.name}.old-{os.getpid()}")
+            os.replace(dest, old)
+            os.replace(p, dest)
+            shutil.rmtree(old, ignore_errors=True)
+            continue
+        if p.is_dir() and (dest.exists() or dest.is_symlink()):
+            shutil.rmtree(dest) if dest.is_dir() and not dest.is_symlink() else dest.unlink()
+        os.replace(p, dest)
+
+
+def _write_outputs(result: NeedleModelResult, out_dir: Path) -> None:
     from needletissue.fem.result import write_series
+    from needletissue.runinfo import write_run_files
 
     files = {"mesh": "needle_model.msh"}
     for r in result.results:
