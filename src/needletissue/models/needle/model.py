@@ -339,56 +339,13 @@ def write_outputs(result: NeedleModelResult, out_dir: Path, mesh: bytes | None =
     meanwhile (SIGTERM, Ctrl-C, a failed render) leaves out_dir as it was, not half a set of files. The
     per-force files of an earlier run into the same folder that this run did not write (other forces)
     are removed: listed in no needle.pvd or results.json, they passed for this run's."""
-    import os
-    import shutil
-    import tempfile
+    from needletissue.runinfo import staged_output, write_atomic
 
-    from needletissue.runinfo import current_umask, make_dir, write_atomic
-
-    made = not out_dir.exists()
-    make_dir(out_dir)
-    stage = Path(tempfile.mkdtemp(prefix=".needle-partial-", dir=out_dir))
-    try:
-        os.chmod(stage, 0o777 & ~current_umask())
+    with staged_output(out_dir, replaces=r"needle_[-+0-9.e]+N(\.vtu|\.vtm)?") as stage:
+        # needle_<force:g>N.vtu / .vtm / pieces folder of an earlier run's other forces
         if mesh is not None:
             write_atomic(stage / "needle_model.msh", mesh)
         _write_outputs(result, stage)
-        _publish(stage, out_dir)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        if made:  # nor an empty folder of this run
-            shutil.rmtree(out_dir, ignore_errors=True) if not any(out_dir.iterdir()) else None
-        raise
-    shutil.rmtree(stage, ignore_errors=True)
-
-
-_PER_FORCE = r"needle_[-+0-9.e]+N(\.vtu|\.vtm)?"  # needle_<force:g>N.vtu / .vtm / pieces folder
-
-
-def _publish(stage: Path, out_dir: Path) -> None:
-    """Move stage's entries into out_dir (folders and VTUs first, results.json last); remove the
-    per-force entries of an earlier run that stage does not have."""
-    import os
-    import re
-    import shutil
-
-    new = {p.name for p in stage.iterdir()}
-    for old in out_dir.iterdir():
-        if old.name not in new and re.fullmatch(_PER_FORCE, old.name):
-            shutil.rmtree(old) if old.is_dir() and not old.is_symlink() else old.unlink()
-    rank = {".vtu": 1, ".vtm": 2, ".pvd": 3, ".json": 5}
-    for p in sorted(stage.iterdir(), key=lambda p: (0 if p.is_dir() else rank.get(p.suffix, 4),
-                                                    p.name == "results.json", p.name)):
-        dest = out_dir / p.name
-        if p.is_dir() and dest.is_dir() and not dest.is_symlink():
-            old = dest.with_name(f".{dest.name}.old-{os.getpid()}")
-            os.replace(dest, old)
-            os.replace(p, dest)
-            shutil.rmtree(old, ignore_errors=True)
-            continue
-        if p.is_dir() and (dest.exists() or dest.is_symlink()):
-            shutil.rmtree(dest) if dest.is_dir() and not dest.is_symlink() else dest.unlink()
-        os.replace(p, dest)
 
 
 def _write_outputs(result: NeedleModelResult, out_dir: Path) -> None:
