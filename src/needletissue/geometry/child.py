@@ -33,7 +33,7 @@ def call_in_child(target: str, kwargs: dict, *, what: str) -> dict:
     src = str(Path(__file__).resolve().parents[2])  # the directory holding `needletissue`
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (src, os.environ.get("PYTHONPATH")) if p),
                **{_PARENT: str(os.getpid())})
-    with tempfile.TemporaryDirectory(prefix="needletissue-child-") as tmp:
+    with _UnwindOnSigterm(), tempfile.TemporaryDirectory(prefix="needletissue-child-") as tmp:
         answer = Path(tmp) / "answer.json"
         request = json.dumps({"target": target, "kwargs": kwargs, "answer": str(answer)})
         proc = subprocess.Popen([sys.executable, "-c", "from needletissue.geometry.child import main; main()"],
@@ -55,6 +55,30 @@ def call_in_child(target: str, kwargs: dict, *, what: str) -> dict:
             raise ChildCrash(f"{what} crashed in native code ({name}); a slightly different element size "
                              "usually avoids it")
         raise ChildCrash(f"{what} failed in its child process (exit {proc.returncode}): {last[0]}")
+
+
+class _UnwindOnSigterm:
+    """While the child runs, SIGTERM to a process that would die of it at once (the default action: a
+    `reproduce` stage worker, stopped with SIGTERM) raises SystemExit(143) instead, so that the child is
+    killed and the temporary folders of the caller are removed; without it they stayed in $TMPDIR.
+    A handler already set (the CLI's) is left alone. Main thread only (where Python runs handlers)."""
+
+    def __enter__(self):
+        import threading
+
+        self.old = None
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL):
+            self.old = signal.signal(signal.SIGTERM, _exit_on_signal)
+        return self
+
+    def __exit__(self, *exc):
+        if self.old is not None:
+            signal.signal(signal.SIGTERM, self.old)
+
+
+def _exit_on_signal(signum, frame):
+    raise SystemExit(128 + signum)
 
 
 def _error_class(qualname: str):

@@ -308,6 +308,19 @@ def _worker_start():
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # and it dies with the process that started it, however that one ends (a `reproduce` stage worker
+    # stopped with SIGTERM left it rendering on)
+    import multiprocessing as mp
+
+    parent = mp.parent_process()
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux
+        return
+    if parent is not None and os.getppid() != parent.pid:  # the parent died before the line above
+        os._exit(1)
 
 
 def _stop_workers(pool) -> None:
