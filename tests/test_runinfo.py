@@ -122,3 +122,17 @@ def test_staged_output_moves_in_replaces_and_follows_the_umask(tmp_path, umask, 
     assert (out / "run_10N" / "piece.vtu").read_text() == "second"
     assert stat.S_IMODE(out.stat().st_mode) == stat.S_IMODE((out / "run_10N").stat().st_mode) == 0o777 & ~mask
     assert stat.S_IMODE((out / "run_10N" / "piece.vtu").stat().st_mode) == 0o666 & ~mask
+
+
+def test_staged_output_replaces_a_file_by_a_folder_and_back(tmp_path):
+    from needletissue.runinfo import staged_output
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "run_10N").write_text("a file where the run puts its pieces folder")
+    (out / "run_10N.vtu").mkdir()  # and a folder where it puts a file
+    with staged_output(out) as stage:
+        (stage / "run_10N").mkdir()
+        (stage / "run_10N" / "a.vtu").write_text("piece")
+        (stage / "run_10N.vtu").write_text("whole")
+    assert (out / "run_10N" / "a.vtu").read_text() == "piece" and (out / "run_10N.vtu").read_text() == "whole"

@@ -230,8 +230,8 @@ def staged_output(out_dir: str | Path, replaces: str | None = None):
                 os.replace(p, dest)
                 _remove(old)
                 continue
-            if dest.is_dir() and not dest.is_symlink() or (p.is_dir() and dest.is_symlink()):
-                _remove(dest)
+            if (dest.exists() or dest.is_symlink()) and (p.is_dir() or (dest.is_dir() and not dest.is_symlink())):
+                _remove(dest)  # a folder over a file, or a file over a folder: os.replace cannot
             os.replace(p, dest)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
