@@ -237,6 +237,11 @@ def test_rerun_with_fewer_forces_and_a_moved_folder(one_needle, tmp_path, monkey
     with pytest.warns(UserWarning, match="needle_deformed.png not written"):
         write_outputs(two, out)
     assert {"needle_10N.vtm", "needle_30N.vtm", "needle_30N", "needle_30N.vtu"} <= {p.name for p in out.iterdir()}
+    (out / "needle_model.msh").write_text("a mesh of some other run")
+    with pytest.warns(UserWarning):
+        write_outputs(two, out)  # no mesh given: none listed, and none of another run left to pass for it
+    assert not (out / "needle_model.msh").exists()
+    assert "mesh" not in json.loads((out / "results.json").read_text())["files"]
     with pytest.warns(UserWarning):
         write_outputs(one_needle, out, mesh=b"$MeshFormat\n")
     names = sorted(p.name for p in out.iterdir())

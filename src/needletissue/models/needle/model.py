@@ -341,18 +341,18 @@ def write_outputs(result: NeedleModelResult, out_dir: Path, mesh: bytes | None =
     are removed: listed in no needle.pvd or results.json, they passed for this run's."""
     from needletissue.runinfo import staged_output, write_atomic
 
-    with staged_output(out_dir, replaces=r"needle_[-+0-9.e]+N(\.vtu|\.vtm)?") as stage:
-        # needle_<force:g>N.vtu / .vtm / pieces folder of an earlier run's other forces
+    with staged_output(out_dir, replaces=r"needle_[-+0-9.e]+N(\.vtu|\.vtm)?|needle_model\.msh") as stage:
+        # needle_<force:g>N.vtu / .vtm / pieces folder of an earlier run's other forces; its mesh
         if mesh is not None:
             write_atomic(stage / "needle_model.msh", mesh)
-        _write_outputs(result, stage)
+        _write_outputs(result, stage, with_mesh=mesh is not None)
 
 
-def _write_outputs(result: NeedleModelResult, out_dir: Path) -> None:
+def _write_outputs(result: NeedleModelResult, out_dir: Path, with_mesh: bool) -> None:
     from needletissue.fem.result import write_series
     from needletissue.runinfo import write_run_files
 
-    files = {"mesh": "needle_model.msh"}
+    files = {"mesh": "needle_model.msh"} if with_mesh else {}  # results.json names no mesh it lacks
     for r in result.results:
         name = f"needle_{r.force_N:g}N.vtu"
         r.fe.write_vtu(out_dir / name, frame=FRAME, force_N=r.force_N)
