@@ -74,3 +74,65 @@ def test_versions_cover_every_dependency_and_the_run_is_recorded(tmp_path):
     head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
     if head.returncode == 0 and Path(needletissue.__file__).resolve().is_relative_to(root):
         assert run["git_commit"] == head.stdout.strip()
+
+
+def _tree(root):
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+def test_staged_output_stopped_leaves_the_folder_as_it_was(tmp_path):
+    from needletissue.runinfo import staged_output
+
+    out = tmp_path / "out"
+    (out / "run_10N").mkdir(parents=True)
+    (out / "run_10N" / "a.vtu").write_text("old")
+    (out / "notes.txt").write_text("mine")
+    before = _tree(out)
+    for stop in (KeyboardInterrupt, SystemExit(143), RuntimeError("failed")):
+        with pytest.raises(type(stop) if isinstance(stop, BaseException) else stop):
+            with staged_output(out, replaces=r"run_[0-9]+N") as stage:
+                (stage / "run_10N").mkdir()
+                (stage / "run_10N" / "a.vtu").write_text("new")
+                (stage / "results.json").write_text("{}")
+                raise stop
+        assert _tree(out) == before and (out / "run_10N" / "a.vtu").read_text() == "old"
+    with pytest.raises(KeyboardInterrupt), staged_output(tmp_path / "fresh") as stage:
+        (stage / "x").write_text("x")
+        raise KeyboardInterrupt
+    assert not (tmp_path / "fresh").exists()
+
+
+@pytest.mark.parametrize("mask", [0o022, 0o027, 0o077])
+def test_staged_output_moves_in_replaces_and_follows_the_umask(tmp_path, umask, mask):
+    from needletissue.runinfo import staged_output
+
+    umask(mask)
+    out = tmp_path / "out"
+    with staged_output(out, replaces=r"run_[0-9]+N(\.vtu)?") as stage:
+        for f in (10, 20):
+            (stage / f"run_{f}N").mkdir()
+            write_atomic(stage / f"run_{f}N" / "piece.vtu", "first")
+            write_atomic(stage / f"run_{f}N.vtu", "first")
+    (out / "notes.txt").write_text("mine")
+    with staged_output(out, replaces=r"run_[0-9]+N(\.vtu)?") as stage:
+        (stage / "run_10N").mkdir()
+        write_atomic(stage / "run_10N" / "piece.vtu", "second")
+        write_atomic(stage / "run_10N.vtu", "second")
+    assert _tree(out) == ["notes.txt", "run_10N", "run_10N.vtu", "run_10N/piece.vtu"]  # run_20N: gone
+    assert (out / "run_10N" / "piece.vtu").read_text() == "second"
+    assert stat.S_IMODE(out.stat().st_mode) == stat.S_IMODE((out / "run_10N").stat().st_mode) == 0o777 & ~mask
+    assert stat.S_IMODE((out / "run_10N" / "piece.vtu").stat().st_mode) == 0o666 & ~mask
+
+
+def test_staged_output_replaces_a_file_by_a_folder_and_back(tmp_path):
+    from needletissue.runinfo import staged_output
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "run_10N").write_text("a file where the run puts its pieces folder")
+    (out / "run_10N.vtu").mkdir()  # and a folder where it puts a file
+    with staged_output(out) as stage:
+        (stage / "run_10N").mkdir()
+        (stage / "run_10N" / "a.vtu").write_text("piece")
+        (stage / "run_10N.vtu").write_text("whole")
+    assert (out / "run_10N" / "a.vtu").read_text() == "piece" and (out / "run_10N.vtu").read_text() == "whole"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 from types import SimpleNamespace
 
@@ -75,9 +76,12 @@ def main() -> None:
         err.print(f"[yellow]warning:[/yellow] {escape(str(message))}", soft_wrap=True)
 
     warnings.showwarning = one_line
+    _stop_on_sigterm()
     exc = _click_exceptions()
     try:
         rv = app(standalone_mode=False)
+    except _Stopped:
+        _error("stopped (SIGTERM): child processes stopped, temporary files removed", 128 + signal.SIGTERM)
     except InputError as e:
         _error(str(e), 2)
     except NeedleTissueError as e:
@@ -92,4 +96,22 @@ def main() -> None:
         _error(" ".join(e.format_message().split()), e.exit_code)
     except typer.Abort:
         _error("aborted", 130)
+    if rv == 130:  # Typer's answer to Ctrl-C (KeyboardInterrupt), after the command has unwound
+        _error("interrupted: child processes stopped, temporary files removed", 130)
     sys.exit(rv if isinstance(rv, int) else 0)
+
+
+class _Stopped(SystemExit):
+    """SIGTERM, raised in the main thread: the command unwinds (its `finally` blocks remove temporary
+    folders, stop child processes) like Ctrl-C, instead of dying at once and leaving them behind."""
+
+
+def _stop_on_sigterm() -> None:
+    def stop(signum, frame):
+        raise _Stopped(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop)
+
+
+if __name__ == "__main__":  # python -m needletissue.cli
+    main()

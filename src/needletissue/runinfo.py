@@ -8,6 +8,7 @@ import os
 import platform
 import sys
 import tempfile
+from contextlib import contextmanager
 from dataclasses import asdict, is_dataclass
 from importlib import metadata
 from pathlib import Path
@@ -190,6 +191,63 @@ def write_atomic(path: str | Path, data: bytes | str) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+@contextmanager
+def staged_output(out_dir: str | Path, replaces: str | None = None):
+    """A hidden folder inside out_dir to write a run's files into (yielded); when the block ends without
+    an exception its entries are moved into out_dir (folders and VTUs first, results.json last). On any
+    exception (SIGTERM, Ctrl-C, a failure) the folder is removed instead, with out_dir when this made it
+    and nothing else is in it: a stopped run leaves out_dir as it was, not half a set of files.
+
+    `replaces`: a regular expression of entry names the run owns (e.g. per-force VTUs); entries of
+    out_dir matching it that this run did not write (an earlier run's other forces) are removed."""
+    import re
+    import shutil
+
+    out_dir = Path(out_dir)
+    made = not out_dir.exists()
+    make_dir(out_dir)
+    try:
+        stage = Path(tempfile.mkdtemp(prefix=".partial-", dir=out_dir))
+    except OSError as exc:
+        raise _unwritable(out_dir, exc) from None
+    try:
+        os.chmod(stage, 0o777 & ~current_umask())
+        yield stage
+        new = {p.name for p in stage.iterdir()}
+        if replaces:
+            for old in out_dir.iterdir():
+                if old.name not in new and re.fullmatch(replaces, old.name):
+                    _remove(old)
+        rank = {".vtu": 1, ".vtm": 2, ".pvd": 3, ".json": 5}
+        for p in sorted(stage.iterdir(), key=lambda p: (0 if p.is_dir() else rank.get(p.suffix, 4),
+                                                        p.name == "results.json", p.name)):
+            dest = out_dir / p.name
+            if p.is_dir() and dest.is_dir() and not dest.is_symlink():
+                old = dest.with_name(f".{dest.name}.old-{os.getpid()}")
+                os.replace(dest, old)
+                os.replace(p, dest)
+                _remove(old)
+                continue
+            if (dest.exists() or dest.is_symlink()) and (p.is_dir() or (dest.is_dir() and not dest.is_symlink())):
+                _remove(dest)  # a folder over a file, or a file over a folder: os.replace cannot
+            os.replace(p, dest)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        if made and not any(out_dir.iterdir()):
+            out_dir.rmdir()
+        raise
+    shutil.rmtree(stage, ignore_errors=True)
+
+
+def _remove(path: Path) -> None:
+    import shutil
+
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    else:
+        path.unlink()
 
 
 def save_figure(fig, path: str | Path, dpi: int = 150) -> Path:

@@ -218,3 +218,55 @@ def test_a_native_crash_in_the_mesher_is_an_error_not_a_dead_process(tmp_path, m
     monkeypatch.setenv("PYTHONPATH", str(tmp_path))
     with pytest.raises(MeshError, match="3 inverted tetrahedra"):
         call_in_child("fails_in_child:run", {}, what="gmsh")
+
+
+def test_a_mesher_child_whose_parent_is_gone_does_nothing(tmp_path):
+    # SIGTERM to `fe needle` while the child interpreter was still starting: PR_SET_PDEATHSIG was set only
+    # after the parent had died, so the orphan meshed on and wrote the mesh into --out after the command
+    # had exited. The child now checks it still has the parent that started it before doing anything.
+    import json
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "touch_in_child.py").write_text(
+        "from pathlib import Path\ndef run(path):\n    Path(path).write_text('meshed')\n    return {}\n")
+    done, answer = tmp_path / "mesh.msh", tmp_path / "answer.json"
+    request = json.dumps({"target": "touch_in_child:run", "kwargs": {"path": str(done)}, "answer": str(answer)})
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    cmd = [sys.executable, "-c", "from needletissue.geometry.child import main; main()"]
+    gone = subprocess.run(cmd, input=request, text=True, capture_output=True, timeout=60,
+                          env={**env, "NEEDLETISSUE_CHILD_PARENT": "1"})  # not our parent: it has died
+    assert gone.returncode != 0 and not done.exists() and not answer.exists()
+    alive = subprocess.run(cmd, input=request, text=True, capture_output=True, timeout=60,
+                           env={**env, "NEEDLETISSUE_CHILD_PARENT": str(os.getpid())})
+    assert alive.returncode == 0 and done.read_text() == "meshed" and json.loads(answer.read_text()) == {"value": {}}
+
+
+def test_sigterm_to_a_caller_without_a_handler_stops_the_mesher_and_removes_its_folders(tmp_path):
+    # a `reproduce` stage worker (default SIGTERM action) stopped while gmsh ran in its child left the
+    # child's needletissue-child-* folder in $TMPDIR
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    (tmp_path / "slow_in_child.py").write_text("import time\ndef run():\n    time.sleep(60)\n    return {}\n")
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    env = dict(os.environ, TMPDIR=str(tmp),
+               PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    p = subprocess.Popen([sys.executable, "-c", "from needletissue.geometry.child import call_in_child\n"
+                          "call_in_child('slow_in_child:run', {}, what='gmsh')"], env=env, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while not subprocess.run(["pgrep", "-P", str(p.pid)], capture_output=True).stdout:
+        assert p.poll() is None and time.monotonic() < deadline
+        time.sleep(0.05)
+    time.sleep(0.5)  # the child is running
+    kids = subprocess.run(["pgrep", "-P", str(p.pid)], capture_output=True, text=True).stdout.split()
+    p.send_signal(signal.SIGTERM)
+    p.communicate(timeout=30)
+    assert p.returncode == 143
+    time.sleep(0.5)
+    assert not [k for k in kids if os.path.exists(f"/proc/{k}")] and list(tmp.iterdir()) == []

@@ -185,3 +185,77 @@ def test_json_reports_clamp_motion_and_strength(cli_run):
             vm["cortical_bone"] / get("cortical_bone").strength, vm["cancellous_bone"] / get("cancellous_bone").strength))
         assert r["validity_warnings"] == []  # 10-20 N: far below yield
     assert b["needle_yield_utilisation"] == pytest.approx(2 * a["needle_yield_utilisation"], rel=0.02)
+
+
+def _no_render(monkeypatch):
+    """write_outputs without the (slow, VTK) deformed-model picture: the render fails, a warning says so."""
+    import needletissue.models.render as render
+
+    def fail(*a):
+        raise RuntimeError("no picture in this test")
+
+    monkeypatch.setattr(render, "isolated", fail)
+
+
+def test_outputs_stopped_midway_leave_the_folder_as_it_was(one_needle, tmp_path, monkeypatch):
+    # SIGTERM/Ctrl-C while the picture rendered (the last step) left the VTUs, the .vtm pieces and the
+    # .pvd of the run in --out without results.json: half a result folder
+    from needletissue.models.needle import write_outputs
+    import needletissue.models.render as render
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+
+    def interrupted(*a):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(render, "isolated", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        write_outputs(one_needle, out)
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]
+    with pytest.raises(KeyboardInterrupt):
+        write_outputs(one_needle, tmp_path / "new")
+    assert not (tmp_path / "new").exists()  # nor an empty folder
+
+
+def test_rerun_with_fewer_forces_and_a_moved_folder(one_needle, tmp_path, monkeypatch):
+    # a second run into the same folder with fewer forces left the first run's needle_<F>N.vtu/.vtm and
+    # pieces folders beside the new ones, listed nowhere but easily taken for this run's
+    import dataclasses
+    import re
+    import shutil
+
+    import pyvista as pv
+
+    from needletissue.models.needle import write_outputs
+
+    _no_render(monkeypatch)
+    r10 = one_needle.results[0]
+    two = dataclasses.replace(one_needle, results=[r10, dataclasses.replace(r10, force_N=30.0)])
+    out = tmp_path / "out"
+    with pytest.warns(UserWarning, match="needle_deformed.png not written"):
+        write_outputs(two, out)
+    assert {"needle_10N.vtm", "needle_30N.vtm", "needle_30N", "needle_30N.vtu"} <= {p.name for p in out.iterdir()}
+    (out / "needle_model.msh").write_text("a mesh of some other run")
+    with pytest.warns(UserWarning):
+        write_outputs(two, out)  # no mesh given: none listed, and none of another run left to pass for it
+    assert not (out / "needle_model.msh").exists()
+    assert "mesh" not in json.loads((out / "results.json").read_text())["files"]
+    with pytest.warns(UserWarning):
+        write_outputs(one_needle, out, mesh=b"$MeshFormat\n")
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["config.toml", "needle.pvd", "needle_10N", "needle_10N.vtm", "needle_10N.vtu",
+                     "needle_deflection.png", "needle_model.msh", "results.json", "versions.json"], names
+    assert re.findall(r'file="([^"]+)"', (out / "needle.pvd").read_text()) == ["needle_10N.vtm"]
+    for f in out.rglob("*"):  # nothing names the folder it was written in
+        assert not f.is_file() or str(tmp_path).encode() not in f.read_bytes(), f
+    moved = tmp_path / "elsewhere" / "copy"
+    shutil.copytree(out, moved)
+    shutil.rmtree(out)
+    series = pv.read(moved / "needle.pvd")
+    blocks = pv.read(moved / "needle_10N.vtm")
+    n = len(r10.fe.region_tags)
+    assert series.n_blocks == 1 and series[0].n_blocks == n == blocks.n_blocks  # the load's .vtm, by region
+    assert list(blocks.keys()) == list(r10.fe.region_tags)
+    assert sum(b.n_cells for b in blocks) == len(r10.fe.cells)

@@ -379,3 +379,23 @@ def test_written_config_is_accepted_back(tmp_path, monkeypatch):
     got = seen[-1]
     assert got.mesh_size == 5.0 and got.needle_size == 3.0 and got.side == "left" and got.out is None
     assert got.friction == {"needle-muscle": 0.3, "bone-needle": 0.9}
+
+
+def test_a_run_stopped_while_writing_leaves_out_as_it_was(tmp_path, monkeypatch):
+    # SIGTERM/Ctrl-C while the figures rendered left the VTUs, .vtm pieces, .pvd and results of the run in
+    # --out without its figures (and the figure child writing on after the command had gone)
+    import needletissue.models.pelvis.model as pm
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "pelvis_100N.vtu").write_text("an earlier run")
+
+    def stopped_while_writing(config, out_dir):
+        (out_dir / "pelvis_200N.vtu").write_text("half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pm, "_run_pelvis_model", stopped_while_writing)
+    with pytest.raises(KeyboardInterrupt):
+        pm.run_pelvis_model(pm.PelvisConfig(forces=[200.0], out=str(out)))
+    assert [p.name for p in out.iterdir()] == ["pelvis_100N.vtu"]
+    assert (out / "pelvis_100N.vtu").read_text() == "an earlier run"

@@ -166,3 +166,51 @@ def test_an_off_centre_load_point_rides_on_the_turning_clamp():
     tail = p[np.isclose(p @ FORCE, (p @ FORCE).min(), atol=1e-6)].mean(axis=0)
     np.testing.assert_allclose(tail, rot @ (load - centre) + centre + shift, atol=1e-4)  # float32 mesh
     b.plotter.close()
+
+
+def test_isolated_stops_its_child_when_the_caller_is_interrupted(tmp_path):
+    # SIGTERM/Ctrl-C to `fe needle` while it rendered: the executor waited for the child, which went on
+    # and wrote needle_deformed.png after the command had stopped (or outlived it, with SIGTERM).
+    import signal
+    import time
+
+    from needletissue.models.render import isolated
+
+    late = tmp_path / "late.png"
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGALRM, interrupt)
+    signal.setitimer(signal.ITIMER_REAL, 1.5)  # the child is started (spawn) and sleeping by then
+    t0 = time.perf_counter()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            isolated(exec, f"import time, pathlib; time.sleep(4); pathlib.Path({str(late)!r}).write_text('x')")
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+    assert time.perf_counter() - t0 < 3.5  # did not wait for the child
+    time.sleep(4)
+    assert not late.exists()  # the child was stopped, not left to finish
+
+
+def test_isolated_child_dies_with_a_killed_caller(tmp_path):
+    # a `reproduce` stage worker killed while it rendered left its render child running on (an orphan)
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    late = tmp_path / "late.png"
+    work = f"import time, pathlib; time.sleep(4); pathlib.Path({str(late)!r}).write_text('x')"
+    p = subprocess.Popen([sys.executable, "-c", f"from needletissue.models.render import isolated\nisolated(exec, {work!r})"])
+    deadline = time.monotonic() + 60
+    while b"spawn_main" not in subprocess.run(["pgrep", "-a", "-P", str(p.pid)], capture_output=True).stdout:
+        assert p.poll() is None and time.monotonic() < deadline
+        time.sleep(0.05)
+    time.sleep(1.0)  # the child is past its start
+    p.send_signal(signal.SIGKILL)
+    p.wait(10)
+    time.sleep(5)
+    assert not late.exists()

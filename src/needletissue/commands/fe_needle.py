@@ -109,6 +109,10 @@ def register(app: typer.Typer, groups) -> None:
                               for k, v in (("dhat", contact_dhat), ("eps_v", contact_eps_v)) if v is not None}
             settings = ContactSettings(**given_settings)
             hooks = NeedleContact(interfaces, pairs, settings).hooks()
+        if out is not None:  # a file or an unwritable place: one error line now, not after meshing
+            from needletissue.runinfo import check_output_dir
+
+            check_output_dir(out, "--out")
         result = run_needle_model(cfg, out, **hooks)
         if json_out:
             from needletissue.runinfo import to_jsonable

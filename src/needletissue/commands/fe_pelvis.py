@@ -88,6 +88,10 @@ def register(app, groups) -> None:
         kw["friction"] = {**kw.get("friction", {}), **parse_friction(friction or [])}
         if kw.get("source", "ct") == "ct" and (kw.get("ct") is None) != (kw.get("labels") is None):
             raise InputError("--ct/--labels", "give both --ct and --labels (or neither for the example CT)")
+        if out is not None:  # a file or an unwritable place: one error line now, not a traceback after the solve
+            from needletissue.runinfo import check_output_dir
+
+            check_output_dir(out, "--out")
         config = PelvisConfig(**kw, out=str(out) if out else None, progress=not json_out)
         res = run_pelvis_model(config)
         d = res.to_dict()

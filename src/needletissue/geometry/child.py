@@ -31,8 +31,9 @@ def call_in_child(target: str, kwargs: dict, *, what: str) -> dict:
     (subclasses of NeedleTissueError that take one message); anything else becomes ChildCrash naming `what`.
     """
     src = str(Path(__file__).resolve().parents[2])  # the directory holding `needletissue`
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (src, os.environ.get("PYTHONPATH")) if p))
-    with tempfile.TemporaryDirectory(prefix="needletissue-child-") as tmp:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (src, os.environ.get("PYTHONPATH")) if p),
+               **{_PARENT: str(os.getpid())})
+    with _UnwindOnSigterm(), tempfile.TemporaryDirectory(prefix="needletissue-child-") as tmp:
         answer = Path(tmp) / "answer.json"
         request = json.dumps({"target": target, "kwargs": kwargs, "answer": str(answer)})
         proc = subprocess.Popen([sys.executable, "-c", "from needletissue.geometry.child import main; main()"],
@@ -56,6 +57,30 @@ def call_in_child(target: str, kwargs: dict, *, what: str) -> dict:
         raise ChildCrash(f"{what} failed in its child process (exit {proc.returncode}): {last[0]}")
 
 
+class _UnwindOnSigterm:
+    """While the child runs, SIGTERM to a process that would die of it at once (the default action: a
+    `reproduce` stage worker, stopped with SIGTERM) raises SystemExit(143) instead, so that the child is
+    killed and the temporary folders of the caller are removed; without it they stayed in $TMPDIR.
+    A handler already set (the CLI's) is left alone. Main thread only (where Python runs handlers)."""
+
+    def __enter__(self):
+        import threading
+
+        self.old = None
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL):
+            self.old = signal.signal(signal.SIGTERM, _exit_on_signal)
+        return self
+
+    def __exit__(self, *exc):
+        if self.old is not None:
+            signal.signal(signal.SIGTERM, self.old)
+
+
+def _exit_on_signal(signum, frame):
+    raise SystemExit(128 + signum)
+
+
 def _error_class(qualname: str):
     module, _, name = qualname.rpartition(".")
     try:
@@ -65,6 +90,9 @@ def _error_class(qualname: str):
     return cls if isinstance(cls, type) and issubclass(cls, NeedleTissueError) else ChildCrash
 
 
+_PARENT = "NEEDLETISSUE_CHILD_PARENT"  # the pid of the process that started the child
+
+
 def _die_with_parent() -> None:
     try:
         import ctypes
@@ -72,6 +100,12 @@ def _die_with_parent() -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # not Linux: the parent's kill on interrupt still applies
         pass
+    # PDEATHSIG only covers a parent that dies from now on: one killed while this interpreter started
+    # (SIGTERM right after the mesher was launched) left the child meshing on as an orphan, writing the
+    # mesh into the output folder after the command had exited.
+    parent = os.environ.get(_PARENT)
+    if parent and os.getppid() != int(parent):
+        os._exit(1)
 
 
 def main() -> None:

@@ -265,7 +265,9 @@ def _mesh_here(geometry: NeedleGeometry, path: str | Path, *, order: int, verbos
     t0 = time.perf_counter()
     own = not gmsh.isInitialized()
     if own:
-        gmsh.initialize(interruptible=False)
+        from needletissue.geometry.gmsh_init import initialize  # keeps the SIGTERM handler
+
+        initialize()
     try:
         gmsh.option.setNumber("General.Terminal", 1 if verbose else 0)
         gmsh.clear()

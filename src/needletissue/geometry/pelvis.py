@@ -517,7 +517,9 @@ def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needl
     bar_len = span + 2 * site.clamp_overhang
 
     lo, hi = vol.bounds
-    gmsh.initialize(interruptible=False)
+    from needletissue.geometry.gmsh_init import initialize  # keeps the SIGTERM handler
+
+    initialize()
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.NumThreads", threads)

@@ -144,7 +144,9 @@ class TetMesh:
         tmp = path.with_name(f".{path.stem}.tmp.msh")
         was_init = gmsh.isInitialized()
         if not was_init:
-            gmsh.initialize(interruptible=False)
+            from needletissue.geometry.gmsh_init import initialize  # keeps the SIGTERM handler
+
+            initialize()
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add(f"needletissue_{path.stem}")
         try:

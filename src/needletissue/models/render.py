@@ -290,11 +290,48 @@ def isolated(fn, *args):
     # kill this process through the closed pipe instead of raising BrokenProcessPool.
     signal.signal(signal.SIGPIPE, signal.SIG_IGN)
 
-    with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
-        try:
-            return pool.submit(fn, *args).result()
-        except BrokenProcessPool:
-            raise RuntimeError(f"{getattr(fn, '__name__', fn)} crashed (native code)") from None
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"), initializer=_worker_start)
+    try:
+        return pool.submit(fn, *args).result()
+    except BrokenProcessPool:
+        raise RuntimeError(f"{getattr(fn, '__name__', fn)} crashed (native code)") from None
+    except BaseException:  # SIGTERM / Ctrl-C: stop the child now; waiting let it finish and write its PNG
+        _stop_workers(pool)  # into the output folder after the command had exited
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _worker_start():
+    """In isolated()'s child: Ctrl-C, which reaches the whole process group, is the caller's to handle (it
+    stops the child); the child printed a KeyboardInterrupt traceback of its own."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # and it dies with the process that started it, however that one ends (a `reproduce` stage worker
+    # stopped with SIGTERM left it rendering on)
+    import multiprocessing as mp
+
+    parent = mp.parent_process()
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux
+        return
+    if parent is not None and os.getppid() != parent.pid:  # the parent died before the line above
+        os._exit(1)
+
+
+def _stop_workers(pool) -> None:
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    for p in procs:
+        p.terminate()
+    for p in procs:
+        p.join(5)
+        if p.is_alive():
+            p.kill()
+            p.join(5)
 
 
 def _axis_labels(frame: str) -> tuple[str, str, str]:

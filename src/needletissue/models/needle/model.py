@@ -187,10 +187,11 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     t0 = time.perf_counter()
     ritz = _ritz_tips(cfg) if cfg.ritz else {}   # first: cheap, and fails fast on bad input
     with tempfile.TemporaryDirectory() as tmp:
-        msh = Path(mesh_path) if mesh_path else (Path(out_dir) / "needle_model.msh" if out_dir
-                                                else Path(tmp) / "needle_model.msh")
+        # not into out_dir: an interrupted or failed run leaves no mesh there (write_outputs adds it)
+        msh = Path(mesh_path) if mesh_path else Path(tmp) / "needle_model.msh"
         info = mesh_needle_model(g, msh, order=cfg.order)  # order 2: midside nodes on the true cylinder
         mesh = TaggedMesh.read(msh)
+        mesh_file = msh.read_bytes() if out_dir is not None else None
     t_mesh = time.perf_counter() - t0
     if mesh_hook is not None:
         mesh = mesh_hook(mesh)
@@ -257,7 +258,7 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     if report is not None:
         out.extra.update(report(out))
     if out_dir is not None:
-        write_outputs(out, Path(out_dir))
+        write_outputs(out, Path(out_dir), mesh=mesh_file)
     return out
 
 
@@ -330,14 +331,28 @@ def _ritz_tips(cfg: NeedleModelConfig) -> dict[float, dict[str, object]]:
     return out
 
 
-def write_outputs(result: NeedleModelResult, out_dir: Path) -> None:
-    """VTU per force, results.json + config.toml + versions.json, figures (deformed model, curves)."""
+def write_outputs(result: NeedleModelResult, out_dir: Path, mesh: bytes | None = None) -> None:
+    """VTU (+ .vtm and its region pieces) per force, needle.pvd, results.json + config.toml +
+    versions.json, figures (deformed model, curves), and the gmsh mesh `mesh` as needle_model.msh.
+
+    All are written into a hidden folder inside out_dir and moved in when complete, so a run stopped
+    meanwhile (SIGTERM, Ctrl-C, a failed render) leaves out_dir as it was, not half a set of files. The
+    per-force files of an earlier run into the same folder that this run did not write (other forces)
+    are removed: listed in no needle.pvd or results.json, they passed for this run's."""
+    from needletissue.runinfo import staged_output, write_atomic
+
+    with staged_output(out_dir, replaces=r"needle_[-+0-9.e]+N(\.vtu|\.vtm)?|needle_model\.msh") as stage:
+        # needle_<force:g>N.vtu / .vtm / pieces folder of an earlier run's other forces; its mesh
+        if mesh is not None:
+            write_atomic(stage / "needle_model.msh", mesh)
+        _write_outputs(result, stage, with_mesh=mesh is not None)
+
+
+def _write_outputs(result: NeedleModelResult, out_dir: Path, with_mesh: bool) -> None:
+    from needletissue.fem.result import write_series
     from needletissue.runinfo import write_run_files
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    from needletissue.fem.result import write_series
-
-    files = {"mesh": "needle_model.msh"}
+    files = {"mesh": "needle_model.msh"} if with_mesh else {}  # results.json names no mesh it lacks
     for r in result.results:
         name = f"needle_{r.force_N:g}N.vtu"
         r.fe.write_vtu(out_dir / name, frame=FRAME, force_N=r.force_N)

@@ -274,13 +274,32 @@ def thickness_crosscheck(config: PelvisConfig, pm) -> list:
 
 
 def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
-    """Build, solve and report the anatomical model; writes VTU, figures and run files to config.out."""
-    from needletissue.fem import FEModel, Fixed, PrescribedDisplacement, SurfaceForce, TaggedMesh, solve
+    """Build, solve and report the anatomical model; writes VTU, figures and run files to config.out.
 
+    The files are written into a hidden folder inside config.out and moved in when all are written
+    (runinfo.staged_output): a run stopped or failed meanwhile leaves config.out as it was; the
+    pelvis_<F>N files of an earlier run's other forces are removed."""
     if config is None:
         config = PelvisConfig()
     elif isinstance(config, dict):
         config = PelvisConfig(**config)
+    if not config.out:
+        return _run_pelvis_model(config, None)
+    from needletissue.runinfo import staged_output
+
+    out_dir = Path(config.out).absolute()
+    with staged_output(out_dir, replaces=r"pelvis_[0-9]+N(\.vtu|\.vtm)?") as stage:
+        res = _run_pelvis_model(config, stage)
+    for x in res.results:  # where the files are now
+        x.vtu = str(out_dir / Path(x.vtu).name) if x.vtu else x.vtu
+    if res.figures.get("files"):
+        res.figures["files"] = [str(out_dir / Path(f).name) for f in res.figures["files"]]
+    return res
+
+
+def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResult:
+    from needletissue.fem import FEModel, Fixed, PrescribedDisplacement, SurfaceForce, TaggedMesh, solve
+
     t0 = time.perf_counter()
     c0 = time.process_time()
     vol, pm = build(config)
@@ -330,7 +349,6 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
     # the FE reports the larger of the two needles' maxima: compare with the larger Ritz deflection
     ritz_tip = [max(n["max_deflection_mm"][i] for n in ritz["per_needle"]) for i in range(len(config.forces))]
 
-    out_dir = Path(config.out).absolute() if config.out else None  # files store paths relative to it
     loads = []
     gripper_nodes = np.unique(qm.surfaces["gripper"])  # |mean u| over the gripper, as `fe needle`
     from needletissue.models.strength import strength_check
