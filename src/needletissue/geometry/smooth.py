@@ -293,7 +293,9 @@ def gmsh_optimize(points: np.ndarray, cells: np.ndarray, tag: np.ndarray, thresh
     sf = faces[np.concatenate([inter, free])]
     was_init = gmsh.isInitialized()
     if not was_init:
-        gmsh.initialize(interruptible=False)
+        from needletissue.geometry.gmsh_init import initialize  # keeps the SIGTERM handler
+
+        initialize()
     gmsh.option.setNumber("General.Terminal", 0)
     gmsh.model.add("needletissue_optimize")
     try:
