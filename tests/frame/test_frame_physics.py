@@ -245,3 +245,47 @@ def test_elastic_plastic_section():
     above = (0, 1.6 * My / 84.0, 0)
     assert frame.solve(above, model=m).max_needle_deflection_mm > \
         1.05 * frame.solve(above, model=elastic).max_needle_deflection_mm
+
+
+def test_section_tangent_is_the_slope_of_moment_curvature():
+    """The Hermite slopes: dM/dkappa (closed form) equals EI up to first yield, tends to H I far beyond, and
+    integrates to the tabulated M(kappa) (its own quadrature, converged to 1e-6 at first yield; the table's
+    piecewise differences are too noisy to compare slope by slope where the slope is 1/200 of EI)."""
+    from scipy.integrate import quad
+
+    from needletissue.frame.model import moment_curvature, section_tangent
+
+    m = FrameModel(plastic=True)
+    kap, M = moment_curvature(m)
+    T = section_tangent(m, kap)
+    EI = m.bending_stiffness_Nmm2
+    assert math.isclose(T[0], EI) and math.isclose(T[1], EI, rel_tol=1e-12)
+    for kk, Mk in zip(kap[2::16], M[2::16]):
+        got = M[1] + quad(lambda x: section_tangent(m, np.array([x]))[0], kap[1], kk, limit=200)[0]
+        assert abs(got / Mk - 1) < 1e-4
+    assert T[-1] < 0.05 * EI and T[-1] > m.hardening_MPa * m.second_moment_mm4
+
+
+def test_plastic_bone_root_converges_in_few_load_steps():
+    """Issue #14 pathology: one 5 mm pin, bone root (stiff foundation: the earlier uniform law with its fitted
+    factors, 40 mm deep), elastic-plastic, 300 N across (plastic utilisation ~1.03). Newton with a 1e-7
+    finite-difference Jacobian converged only linearly here and the load stepping took 23,787 steps (~40 s);
+    now a handful. The answer is an equilibrium: the supports balance the applied force."""
+    m = FrameModel(needles=1, free_length_mm=84.18, clamp_length_mm=0.0, depth_mm=40.0, bone_law="winkler",
+                   foundation_factor=4.756, axial_factor=0.1711, plastic=True)
+    r = frame.solve((0, 300, 0), model=m, error_estimate=False)
+    assert r.load_steps <= 20 and r.iterations <= 150
+    assert r.needle_plastic_utilisation > 1.0   # past the hinge: the softening branch
+    total = sum(np.array(v) for n in r.needles for v in n.layer_reaction_N.values())
+    assert np.allclose(total, [0, -300, 0], atol=1e-6 * 300)
+    # the same equilibrium as reached by many small load steps (a fixed 1/16 path, each step converged)
+    from needletissue.frame import kernel, solver
+
+    disc = solver._cached_disc(m, False)
+    W = np.array([0, 300.0, 0, 0, 0, 0])
+    y = np.zeros(12)
+    for lam in np.linspace(1 / 16, 1, 16):
+        it, st = kernel.newton(y, lam, disc.NX, disc.P0, W, disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT, disc.SN,
+                               disc.P, solver._tol(disc, W), 50)
+        assert st == kernel.OK
+    assert np.allclose(y, r.state, atol=1e-7)

@@ -31,10 +31,19 @@ from numba import njit
 EI, GJ, EA, KGA, SHEAR, KTIP, LS, FS, MS, Z0, ZC, RIGID, NPL = range(13)
 NP = 13
 # With an elastic-plastic section, P[NP:] holds the moment-curvature table of the section: NPL points
-# curvature kappa_i (1/mm) then moment M_i (N mm), monotonic loading (deformation theory).
+# curvature kappa_i (1/mm), then moment M_i (N mm), then dkappa/dM at the nodes (cubic Hermite kappa(M), C1),
+# monotonic loading (deformation theory).
 OK, MAX_ITER, NOT_FINITE, CUTBACK = 0, 1, 2, 3
 _FD = 1e-7
+# Newton's own forward-difference step (scaled unknowns). 1e-7 was too coarse where the shooting residual is
+# strongly curved: a bone-rooted pin through a plastic hinge amplifies a tip perturbation so much that 1e-5
+# already overflows the integration; the Jacobian's truncation error then made Newton converge only linearly
+# (contraction ~0.5, ~25 iterations at any load step), and the cut-back halved the step for nothing (23,787
+# load steps, issue #14). With 1e-9 it converges quadratically there (tests/frame/test_frame_physics.py);
+# the rounding error of the scaled residual (~1e-16) stays far below.
+_FD_NEWTON = 1e-9
 _MAXIT = 25
+MAX_STEPS = 200   # load steps in one solve_path: beyond this it reports CUTBACK instead of creeping on
 
 
 @njit(cache=True)
@@ -106,7 +115,18 @@ def _rhs(z, s, x0, y0, kind, kh, kz, kt, kr, P, ds):
                     else:
                         hi = mid
                 j = lo
-            kap = P[NP + j] + (mb - P[base + j]) * (P[NP + j + 1] - P[NP + j]) / (P[base + j + 1] - P[base + j])
+            # cubic Hermite in M with the section's exact slopes dkappa/dM at the nodes: kappa(M) is C1, so
+            # Newton converges quadratically (linear interpolation kinks at every node: Newton stalled)
+            sl = base + npl
+            hM = P[base + j + 1] - P[base + j]
+            q = (mb - P[base + j]) / hM
+            if q <= 1.0:
+                q2 = q * q
+                q3 = q2 * q
+                kap = ((2.0 * q3 - 3.0 * q2 + 1.0) * P[NP + j] + (q3 - 2.0 * q2 + q) * hM * P[sl + j]
+                       + (-2.0 * q3 + 3.0 * q2) * P[NP + j + 1] + (q3 - q2) * hM * P[sl + j + 1])
+            else:  # beyond the table: along its last tangent
+                kap = P[NP + j + 1] + (mb - P[base + j + 1]) * P[sl + j + 1]
             f = kap / mb
             k0 = ml0 * f
             k1 = ml1 * f
@@ -312,21 +332,21 @@ def newton(y, lam, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, maxit):
             for j in range(6):
                 for i in range(6):
                     a[i] = y[6 * k + i]
-                a[j] += _FD
+                a[j] += _FD_NEWTON
                 for q in range(nn):
                     for i in range(18):
                         E2[q, i] = E[q, i]
                 integrate(a, NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E2[k], dummy, False)
                 residual(E2, y[6 * nn:], NX, P0, W, lam, P, r2)
                 for i in range(N):
-                    J[i, 6 * k + j] = (r2[i] - res[i]) / _FD
+                    J[i, 6 * k + j] = (r2[i] - res[i]) / _FD_NEWTON
         yc = y[6 * nn:].copy()
         for j in range(6):
-            yc[j] += _FD
+            yc[j] += _FD_NEWTON
             residual(E, yc, NX, P0, W, lam, P, r2)
-            yc[j] -= _FD
+            yc[j] -= _FD_NEWTON
             for i in range(N):
-                J[i, 6 * nn + j] = (r2[i] - res[i]) / _FD
+                J[i, 6 * nn + j] = (r2[i] - res[i]) / _FD_NEWTON
         for i in range(N):
             for j in range(N):
                 if not np.isfinite(J[i, j]):
@@ -351,7 +371,9 @@ def solve_path(y, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, max_cuts):
     """Load stepping from y (a converged state at load factor 0, or a guess at 1) to lam = 1.
 
     Tries the whole load first; halves the increment on failure (cut-back) at most max_cuts times in a
-    row. Returns (total Newton iterations, status, steps)."""
+    row, doubles it after a step that converged in <= 6 iterations; at most MAX_STEPS steps (then CUTBACK:
+    a path that needs more is not converging in any useful sense). Returns (total Newton iterations, status,
+    steps)."""
     N = y.shape[0]
     yprev = y.copy()
     lam = 0.0
@@ -369,8 +391,10 @@ def solve_path(y, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, max_cuts):
             for i in range(N):
                 yprev[i] = y[i]
             cuts = 0
-            if it <= 4:
+            if it <= 6:
                 dl *= 2.0
+            if steps >= MAX_STEPS and lam < 1.0:
+                return total, CUTBACK, steps
         else:
             for i in range(N):
                 y[i] = yprev[i]

@@ -446,3 +446,18 @@ def moment_curvature(model: FrameModel, points: int = 160) -> tuple[np.ndarray, 
     M = (sig * y * dA * w).sum(1)
     M[1] = sy * np.pi * model.diameter_mm**3 / 32  # exact at first yield (the quadrature's kink)
     return kap, M
+
+
+def section_tangent(model: FrameModel, kap: np.ndarray) -> np.ndarray:
+    """dM/dkappa of the same section at the curvatures kap: E_t = E in the elastic core |y| <= c = sigma_y/(E kappa)
+    and H outside, so dM/dkappa = H I + (E - H) I_c with the core's second moment (closed form, exact)
+    I_c = (c/2)(2c^2 - r^2) sqrt(r^2 - c^2) + (r^4/2) asin(c/r) (= I at c = r). It is continuous at first yield
+    (the plastic zone starts with zero area: EI on both sides), so kappa(M), interpolated as a cubic Hermite with
+    these slopes, is continuously differentiable: what Newton needs (a piecewise-linear table kinks at every
+    node, and Newton on it stalled to linear convergence; docs/frame.md)."""
+    E, sy, H = model.youngs_modulus_MPa, model.yield_MPa, model.hardening_MPa
+    r = model.diameter_mm / 2
+    kap = np.asarray(kap, float)
+    c = np.minimum(r, sy / (E * np.maximum(kap, 1e-300)))
+    Ic = 0.5 * c * (2 * c**2 - r**2) * np.sqrt(np.maximum(r**2 - c**2, 0.0)) + 0.5 * r**4 * np.arcsin(c / r)
+    return H * model.second_moment_mm4 + (E - H) * Ic

@@ -118,13 +118,15 @@ def discretise(model: FrameModel, coarse: bool = False) -> Discretisation:
     kGA = shear_factor(m.poisson) * m.shear_modulus_MPa * m.area_mm2
     L = m.free_length_mm
     if m.plastic:
-        from needletissue.frame.model import moment_curvature
+        from needletissue.frame.model import moment_curvature, section_tangent
 
         kap, Mk = moment_curvature(m)
-        P = np.zeros(k.NP + 2 * kap.size)
-        P[k.NPL] = kap.size
-        P[k.NP: k.NP + kap.size] = kap
-        P[k.NP + kap.size:] = Mk
+        n = kap.size
+        P = np.zeros(k.NP + 3 * n)
+        P[k.NPL] = n
+        P[k.NP: k.NP + n] = kap
+        P[k.NP + n: k.NP + 2 * n] = Mk
+        P[k.NP + 2 * n:] = 1.0 / section_tangent(m, kap)  # dkappa/dM at the nodes: a C1 (Hermite) kappa(M)
     else:
         P = np.zeros(k.NP)
     P[k.EI] = EI
@@ -291,8 +293,11 @@ def _run(disc: Discretisation, W: np.ndarray, y0: np.ndarray | None):
         raise ConvergenceError(f"frame Newton: singular tangent ({exc}); the construct is a mechanism "
                                f"under force {W[:3].tolist()} N, moment {W[3:].tolist()} N mm") from None
     if st != k.OK:
+        why = (f"{MAX_CUTS} load cut-backs in a row" if steps < k.MAX_STEPS else
+               f"{k.MAX_STEPS} load steps without reaching the full load (past a limit load, e.g. a plastic "
+               "collapse, or a path Newton cannot follow)")
         raise ConvergenceError(f"frame Newton did not converge for force {W[:3].tolist()} N, moment "
-                               f"{W[3:].tolist()} N mm after {it} iterations and {MAX_CUTS} load cut-backs")
+                               f"{W[3:].tolist()} N mm after {it} iterations: {why}")
     return y, it, steps
 
 
