@@ -296,7 +296,7 @@ def isolated(fn, *args):
     except BrokenProcessPool:
         raise RuntimeError(f"{getattr(fn, '__name__', fn)} crashed (native code)") from None
     except BaseException:  # SIGTERM / Ctrl-C: stop the child now; waiting let it finish and write its PNG
-        _stop_workers(pool)  # into the output folder after the command had exited
+        stop_workers(pool)  # into the output folder after the command had exited
         raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
@@ -323,7 +323,8 @@ def _worker_start():
         os._exit(1)
 
 
-def _stop_workers(pool) -> None:
+def stop_workers(pool) -> None:
+    """Terminate a ProcessPoolExecutor's processes (Python 3.14 has pool.terminate_workers())."""
     procs = list((getattr(pool, "_processes", None) or {}).values())
     for p in procs:
         p.terminate()

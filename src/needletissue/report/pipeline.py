@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from needletissue.errors import InputError
+from needletissue.models.render import stop_workers
 from needletissue.report.config import ReproduceConfig, annotated_toml
 from needletissue.report.paper import PAPER
 from needletissue.runinfo import (check_output_dir, current_umask, make_dir, to_jsonable, version_record, write_atomic,
@@ -122,7 +123,7 @@ def _run_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext") -> St
             raise RuntimeError(f"the {stage.name} stage's process died (a crash in native code, e.g. a "
                                "segmentation fault, or killed for memory)") from None
     except BaseException:  # interrupted (SIGINT/SIGTERM): stop the worker, do not wait for its result
-        _stop_workers(pool)
+        stop_workers(pool)
         raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
@@ -142,18 +143,6 @@ def _run_noting_warnings(run, cfg, ctx) -> StageResult:
             res.notes.append(note)
             seen.add(note)
     return res
-
-
-def _stop_workers(pool) -> None:
-    """Terminate a ProcessPoolExecutor's processes (Python 3.14 has pool.terminate_workers())."""
-    procs = list((getattr(pool, "_processes", None) or {}).values())
-    for p in procs:
-        p.terminate()
-    for p in procs:
-        p.join(5)
-        if p.is_alive():
-            p.kill()
-            p.join(5)
 
 
 class _StopOnSignals:
