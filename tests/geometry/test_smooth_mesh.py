@@ -122,34 +122,19 @@ def test_unknown_method_is_an_input_error():
         MeshConfig(method="marching").validate()
 
 
-def _cli(monkeypatch, capsys, *args):
-    import sys
-
-    from needletissue.cli import main
-
-    monkeypatch.setattr(sys, "argv", ["needletissue", *map(str, args)])
-    code = 0
-    try:
-        main()
-    except SystemExit as exc:
-        code = exc.code or 0
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def test_mesh_command_smooth_method(tmp_path, monkeypatch, capsys):
+def test_mesh_command_smooth_method(tmp_path, run_cli):
     import json
 
     arr, tissues = nested_boxes()
     seg = make_seg(arr, tissues, spacing=H)
     seg.save(tmp_path / "seg")
-    code, out, err = _cli(monkeypatch, capsys, "mesh", tmp_path / "seg", "--out", tmp_path / "m",
+    code, out, err = run_cli("mesh", tmp_path / "seg", "--out", tmp_path / "m",
                           "--method", "smooth", "--fidelity", "--no-surfaces")
     assert code == 0, err
     res = json.loads((tmp_path / "m" / "results.json").read_text(encoding="utf-8"))
     assert res["mesh_info"]["method"] == "smooth"
     assert res["fidelity"]["n_inverted"] == 0 and res["fidelity"]["min_dihedral_deg"] > 0
-    code, _, err = _cli(monkeypatch, capsys, "mesh", tmp_path / "seg", "--out", tmp_path / "m2",
+    code, _, err = run_cli("mesh", tmp_path / "seg", "--out", tmp_path / "m2",
                         "--method", "marching")
     assert code == 2 and "method" in err and "Traceback" not in err
 

@@ -1,35 +1,22 @@
 """`needletissue segment / mesh / thickness` end to end on the phantom; bad input -> exit code 2."""
 
 import json
-import sys
 
 import meshio
 import pytest
 
-from needletissue.cli import main
 from phantom import R_BODY, R_BONE
 
 
-def run(monkeypatch, capsys, *args):
-    monkeypatch.setattr(sys, "argv", ["needletissue", *map(str, args)])
-    code = 0
-    try:
-        main()
-    except SystemExit as exc:
-        code = exc.code or 0
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def test_segment_mesh_thickness(phantom_ct, tmp_path, monkeypatch, capsys):
+def test_segment_mesh_thickness(phantom_ct, tmp_path, run_cli):
     seg_dir, mesh_dir = tmp_path / "seg", tmp_path / "mesh"
-    code, out, err = run(monkeypatch, capsys, "segment", phantom_ct, "--out", seg_dir)
+    code, out, err = run_cli("segment", phantom_ct, "--out", seg_dir)
     assert code == 0, err
     tissues = json.loads((seg_dir / "tissues.json").read_text(encoding="utf-8"))
     assert {"cortical_bone", "cancellous_bone", "muscle", "adipose"} <= set(tissues)
     for f in ("tissues.nii.gz", "config.toml", "versions.json", "results.json"):
         assert (seg_dir / f).is_file()
-    code, out, err = run(monkeypatch, capsys, "mesh", seg_dir, "--size", 4, "--out", mesh_dir)
+    code, out, err = run_cli("mesh", seg_dir, "--size", 4, "--out", mesh_dir)
     assert code == 0, err
     m = meshio.read(mesh_dir / "mesh.msh")
     assert {"cortical_bone", "muscle", "adipose"} <= set(m.field_data)
@@ -39,7 +26,7 @@ def test_segment_mesh_thickness(phantom_ct, tmp_path, monkeypatch, capsys):
     assert all(r["watertight"] and r["manifold"] for r in res["surfaces"].values())
     # phantom centre in LPS: origin (100, 50, -20), direction diag(-1, -1, 1), 64 x 64 voxels of 2 mm
     cx, cy = 100 - 63.0, 50 - 63.0
-    code, out, err = run(monkeypatch, capsys, "thickness", seg_dir, f"--entry={cx + 80},{cy},20",
+    code, out, err = run_cli("thickness", seg_dir, f"--entry={cx + 80},{cy},20",
                          "--direction=-1,0,0", "--json")
     assert code == 0, err
     r = json.loads(out)
@@ -47,20 +34,20 @@ def test_segment_mesh_thickness(phantom_ct, tmp_path, monkeypatch, capsys):
     assert r["frame"].startswith("LPS")
 
 
-def test_bad_input_exit_code_2(tmp_path, monkeypatch, capsys, phantom_ct):
+def test_bad_input_exit_code_2(tmp_path, run_cli, phantom_ct):
     bad = tmp_path / "scan.nii.gz"
     bad.write_text("hello")
-    code, _, err = run(monkeypatch, capsys, "segment", bad, "--out", tmp_path / "o")
+    code, _, err = run_cli("segment", bad, "--out", tmp_path / "o")
     assert code == 2 and "scan.nii.gz" in err and "Traceback" not in err
-    code, _, err = run(monkeypatch, capsys, "mesh", tmp_path / "nothing", "--out", tmp_path / "o")
+    code, _, err = run_cli("mesh", tmp_path / "nothing", "--out", tmp_path / "o")
     assert code == 2 and "tissues.nii.gz" in err
-    code, _, err = run(monkeypatch, capsys, "segment", phantom_ct, "--out", tmp_path / "o",
+    code, _, err = run_cli("segment", phantom_ct, "--out", tmp_path / "o",
                        "--cortical-thickness", "-1")
     assert code == 2 and "cortical_thickness" in err
 
 
-def test_output_folder_that_cannot_be_made_exit_code_2(tmp_path, monkeypatch, capsys, phantom_ct):
+def test_output_folder_that_cannot_be_made_exit_code_2(tmp_path, run_cli, phantom_ct):
     blocker = tmp_path / "file"
     blocker.write_text("")
-    code, _, err = run(monkeypatch, capsys, "segment", phantom_ct, "--out", blocker / "seg")
+    code, _, err = run_cli("segment", phantom_ct, "--out", blocker / "seg")
     assert code == 2 and str(blocker / "seg") in err and "cannot write" in err
