@@ -312,12 +312,9 @@ def newton(y, lam, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, maxit):
     nn = NX.shape[0]
     N = 6 * nn + 6
     E = np.empty((nn, 18))
-    E2 = np.empty((nn, 18))
     dummy = np.empty((1, 18))
     res = np.empty(N)
-    r2 = np.empty(N)
     J = np.empty((N, N))
-    a = np.empty(6)
     for k in range(nn):
         integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k], dummy, False)
     residual(E, y[6 * nn:], NX, P0, W, lam, P, res)
@@ -327,26 +324,7 @@ def newton(y, lam, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, maxit):
             return it, NOT_FINITE
         if rn <= tol:
             return it, OK
-        # Jacobian: needle columns need one integration each; clamp columns only the algebra
-        for k in range(nn):
-            for j in range(6):
-                for i in range(6):
-                    a[i] = y[6 * k + i]
-                a[j] += _FD_NEWTON
-                for q in range(nn):
-                    for i in range(18):
-                        E2[q, i] = E[q, i]
-                integrate(a, NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E2[k], dummy, False)
-                residual(E2, y[6 * nn:], NX, P0, W, lam, P, r2)
-                for i in range(N):
-                    J[i, 6 * k + j] = (r2[i] - res[i]) / _FD_NEWTON
-        yc = y[6 * nn:].copy()
-        for j in range(6):
-            yc[j] += _FD_NEWTON
-            residual(E, yc, NX, P0, W, lam, P, r2)
-            yc[j] -= _FD_NEWTON
-            for i in range(N):
-                J[i, 6 * nn + j] = (r2[i] - res[i]) / _FD_NEWTON
+        _fd_columns(y, E, res, lam, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, _FD_NEWTON, J)
         for i in range(N):
             for j in range(N):
                 if not np.isfinite(J[i, j]):
@@ -415,37 +393,47 @@ def states(y, NX, SZ, SK, SKH, SKZ, SKT, SN, P, store):
 
 @njit(cache=True)
 def jacobian(y, lam, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, J):
-    """Forward-difference Jacobian of the residual at y into J (the tangent Newton uses)."""
+    """Forward-difference Jacobian (step _FD) of the residual at y into J: Broyden's tangent at rest."""
     nn = NX.shape[0]
     N = 6 * nn + 6
     E = np.empty((nn, 18))
-    E2 = np.empty((nn, 18))
     dummy = np.empty((1, 18))
     res = np.empty(N)
-    r2 = np.empty(N)
-    a = np.empty(6)
     for k in range(nn):
         integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k], dummy, False)
     residual(E, y[6 * nn:], NX, P0, W, lam, P, res)
+    _fd_columns(y, E, res, lam, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, _FD, J)
+
+
+@njit(cache=True)
+def _fd_columns(y, E, res, lam, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, h, J):
+    """Forward differences of step h around y (end states E, residual res) into J: needle columns need
+    one integration each, clamp columns only the algebra."""
+    nn = NX.shape[0]
+    N = 6 * nn + 6
+    E2 = np.empty((nn, 18))
+    dummy = np.empty((1, 18))
+    r2 = np.empty(N)
+    a = np.empty(6)
     for k in range(nn):
         for j in range(6):
             for i in range(6):
                 a[i] = y[6 * k + i]
-            a[j] += _FD
+            a[j] += h
             for q in range(nn):
                 for i in range(18):
                     E2[q, i] = E[q, i]
             integrate(a, NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E2[k], dummy, False)
             residual(E2, y[6 * nn:], NX, P0, W, lam, P, r2)
             for i in range(N):
-                J[i, 6 * k + j] = (r2[i] - res[i]) / _FD
+                J[i, 6 * k + j] = (r2[i] - res[i]) / h
     yc = y[6 * nn:].copy()
     for j in range(6):
-        yc[j] += _FD
+        yc[j] += h
         residual(E, yc, NX, P0, W, lam, P, r2)
-        yc[j] -= _FD
+        yc[j] -= h
         for i in range(N):
-            J[i, 6 * nn + j] = (r2[i] - res[i]) / _FD
+            J[i, 6 * nn + j] = (r2[i] - res[i]) / h
 
 
 @njit(cache=True)
