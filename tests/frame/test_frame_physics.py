@@ -221,6 +221,13 @@ def test_pose_and_batch_equal_solve():
             assert np.allclose(got, r.clamp_rotation_rad, atol=1e-8)
         assert abs(dmax - r.max_needle_deflection_mm) < 1e-6
         assert abs(b.max_needle_deflection_mm[i] - r.max_needle_deflection_mm) < 1e-6
+    # warm starts from one fixed reference reuse its cached end states (no integration before the first step)
+    ref = frame.pose(F[0], M[0], model=m)[3]
+    for i in (3, 4, 3):
+        u, rot, dmax, _ = frame.pose(F[i], M[i], model=m, initial=ref)
+        cold = frame.pose(F[i], M[i], model=FrameModel(needles=2))
+        assert np.allclose(u, cold[0], atol=1e-6) and np.allclose(rot, cold[1], atol=1e-8)
+        assert abs(dmax - cold[2]) < 1e-6
     with pytest.raises(InputError, match="force_N"):
         frame.solve_batch([[0, 0, float("nan")]], model=m)
 

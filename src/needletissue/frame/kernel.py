@@ -70,35 +70,30 @@ def expm(w, R):
 
 
 @njit(cache=True, fastmath=True, inline="always")
-def _rhs(z, s, x0, y0, kind, kh, kz, kt, kr, P, ds):
-    # R row-major in s[3:12]: R[i, j] = s[3 + 3 i + j]
+def _rhs(z, s, x0, y0, kind, kh, kz, kt, kr, P, ds, iKGA, iEA, iEI, iGJ, shear, npl):
+    # R row-major in s[3:12]: R[i, j] = s[3 + 3 i + j]; iKGA ... the section's compliances (shear = 0: rigid
+    # in shear and extension); npl > 0: the elastic-plastic moment-curvature table in P
     n0, n1, n2 = s[12], s[13], s[14]
     m0, m1, m2 = s[15], s[16], s[17]
-    # local force and moment: R^T n, R^T m
-    nl0 = s[3] * n0 + s[6] * n1 + s[9] * n2
-    nl1 = s[4] * n0 + s[7] * n1 + s[10] * n2
-    nl2 = s[5] * n0 + s[8] * n1 + s[11] * n2
-    ml0 = s[3] * m0 + s[6] * m1 + s[9] * m2
-    ml1 = s[4] * m0 + s[7] * m1 + s[10] * m2
-    ml2 = s[5] * m0 + s[8] * m1 + s[11] * m2
-    if P[SHEAR] > 0.0:
-        g0 = nl0 / P[KGA]
-        g1 = nl1 / P[KGA]
-        g2 = 1.0 + nl2 / P[EA]
-    else:
-        g0 = 0.0
-        g1 = 0.0
-        g2 = 1.0
-    t0 = s[3] * g0 + s[4] * g1 + s[5] * g2
-    t1 = s[6] * g0 + s[7] * g1 + s[8] * g2
-    t2 = s[9] * g0 + s[10] * g1 + s[11] * g2
+    R00, R01, R02, R10, R11, R12, R20, R21, R22 = s[3], s[4], s[5], s[6], s[7], s[8], s[9], s[10], s[11]
+    nl0 = R00 * n0 + R10 * n1 + R20 * n2
+    nl1 = R01 * n0 + R11 * n1 + R21 * n2
+    nl2 = R02 * n0 + R12 * n1 + R22 * n2
+    ml0 = R00 * m0 + R10 * m1 + R20 * m2
+    ml1 = R01 * m0 + R11 * m1 + R21 * m2
+    ml2 = R02 * m0 + R12 * m1 + R22 * m2
+    g0 = shear * nl0 * iKGA
+    g1 = shear * nl1 * iKGA
+    g2 = 1.0 + shear * nl2 * iEA
+    t0 = R00 * g0 + R01 * g1 + R02 * g2
+    t1 = R10 * g0 + R11 * g1 + R12 * g2
+    t2 = R20 * g0 + R21 * g1 + R22 * g2
     ds[0] = t0
     ds[1] = t1
     ds[2] = t2
-    k0 = ml0 / P[EI]
-    k1 = ml1 / P[EI]
-    k2 = ml2 / P[GJ]
-    npl = int(P[NPL])
+    k0 = ml0 * iEI
+    k1 = ml1 * iEI
+    k2 = ml2 * iGJ
     if npl > 0:
         mb = np.sqrt(ml0 * ml0 + ml1 * ml1)
         base = NP + npl
@@ -131,16 +126,19 @@ def _rhs(z, s, x0, y0, kind, kh, kz, kt, kr, P, ds):
             k0 = ml0 * f
             k1 = ml1 * f
     # R' = R [k]x ; [k]x = [[0,-k2,k1],[k2,0,-k0],[-k1,k0,0]]
-    for i in range(3):
-        a = s[3 + 3 * i]
-        b = s[4 + 3 * i]
-        c = s[5 + 3 * i]
-        ds[3 + 3 * i] = b * k2 - c * k1
-        ds[4 + 3 * i] = -a * k2 + c * k0
-        ds[5 + 3 * i] = a * k1 - b * k0
+    ds[3] = R01 * k2 - R02 * k1
+    ds[4] = -R00 * k2 + R02 * k0
+    ds[5] = R00 * k1 - R01 * k0
+    ds[6] = R11 * k2 - R12 * k1
+    ds[7] = -R10 * k2 + R12 * k0
+    ds[8] = R10 * k1 - R11 * k0
+    ds[9] = R21 * k2 - R22 * k1
+    ds[10] = -R20 * k2 + R22 * k0
+    ds[11] = R20 * k1 - R21 * k0
     ux = s[0] - x0
     uy = s[1] - y0
     uz = s[2] - z
+    f0 = 0.0; f1 = 0.0; f2 = 0.0
     if kind == 0:
         f0 = -kh * ux
         f1 = -kh * uy
@@ -149,11 +147,6 @@ def _rhs(z, s, x0, y0, kind, kh, kz, kt, kr, P, ds):
         w = kh * (1.0 + ux * ux + uy * uy)
         f0 = -w * ux
         f1 = -w * uy
-        f2 = 0.0
-    else:
-        f0 = 0.0
-        f1 = 0.0
-        f2 = 0.0
     ds[12] = -f0
     ds[13] = -f1
     ds[14] = -f2
@@ -163,11 +156,9 @@ def _rhs(z, s, x0, y0, kind, kh, kz, kt, kr, P, ds):
     ds[16] = -(t2 * n0 - t0 * n2)
     ds[17] = -(t0 * n1 - t1 * n0)
     if kind == 0:
-        ds[17] += kt * 0.5 * (s[6] - s[4])
-        if kr != 0.0:
-            ds[15] += kr * 0.5 * (s[10] - s[8])
-            ds[16] += kr * 0.5 * (s[5] - s[9])
-
+        ds[17] += kt * 0.5 * (R10 - R01)
+        ds[15] += kr * 0.5 * (R21 - R12)
+        ds[16] += kr * 0.5 * (R02 - R20)
 
 @njit(cache=True)
 def _start(a, x0, y0, P, s, Rw):
@@ -197,8 +188,9 @@ def _start(a, x0, y0, P, s, Rw):
 
 @njit(cache=True, fastmath=True)
 def integrate(a, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, end, store, do_store):
-    """Integrate one needle from its root to the clamp; end state into `end` (18); with do_store the
-    state at every step boundary into store (nodes, 18)."""
+    """Integrate one needle from its root to the clamp; end state into `end` (18; if it has a 19th entry,
+    the largest |u| over the step boundaries goes there: the key numbers without a second integration);
+    with do_store the state at every step boundary into store (nodes, 18)."""
     s = np.empty(18)
     k1 = np.empty(18)
     k2 = np.empty(18)
@@ -207,9 +199,16 @@ def integrate(a, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, end, store, do_store):
     t = np.empty(18)
     Rw = np.empty((3, 3))
     _start(a, x0, y0, P, s, Rw)
+    iKGA = 1.0 / P[KGA]
+    iEA = 1.0 / P[EA]
+    iEI = 1.0 / P[EI]
+    iGJ = 1.0 / P[GJ]
+    shear = 1.0 if P[SHEAR] > 0.0 else 0.0
+    npl = int(P[NPL])
     node = 0
     if do_store:
         store[0, :] = s
+    best = (s[0] - x0) ** 2 + (s[1] - y0) ** 2 + (s[2] - SZ[0]) ** 2
     for g in range(SK.shape[0]):
         za = SZ[g]
         nst = SN[g]
@@ -221,23 +220,28 @@ def integrate(a, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, end, store, do_store):
         kr = SKT[g, 1]   # rocking (tilt about x and y)
         for st in range(nst):
             z = za + st * h
-            _rhs(z, s, x0, y0, kind, kh, kz, kt, kr, P, k1)
+            _rhs(z, s, x0, y0, kind, kh, kz, kt, kr, P, k1, iKGA, iEA, iEI, iGJ, shear, npl)
             for i in range(18):
                 t[i] = s[i] + 0.5 * h * k1[i]
-            _rhs(z + 0.5 * h, t, x0, y0, kind, kh, kz, kt, kr, P, k2)
+            _rhs(z + 0.5 * h, t, x0, y0, kind, kh, kz, kt, kr, P, k2, iKGA, iEA, iEI, iGJ, shear, npl)
             for i in range(18):
                 t[i] = s[i] + 0.5 * h * k2[i]
-            _rhs(z + 0.5 * h, t, x0, y0, kind, kh, kz, kt, kr, P, k3)
+            _rhs(z + 0.5 * h, t, x0, y0, kind, kh, kz, kt, kr, P, k3, iKGA, iEA, iEI, iGJ, shear, npl)
             for i in range(18):
                 t[i] = s[i] + h * k3[i]
-            _rhs(z + h, t, x0, y0, kind, kh, kz, kt, kr, P, k4)
+            _rhs(z + h, t, x0, y0, kind, kh, kz, kt, kr, P, k4, iKGA, iEA, iEI, iGJ, shear, npl)
             for i in range(18):
                 s[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
             node += 1
             if do_store:
                 store[node, :] = s
+            d = (s[0] - x0) ** 2 + (s[1] - y0) ** 2 + (s[2] - z - h) ** 2
+            if d > best:
+                best = d
     for i in range(18):
         end[i] = s[i]
+    if end.shape[0] > 18:
+        end[18] = np.sqrt(best)
 
 
 @njit(cache=True)
@@ -437,13 +441,15 @@ def _fd_columns(y, E, res, lam, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, h, J):
 
 
 @njit(cache=True)
-def broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, maxit):
+def broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, maxit, E, have_E=False):
     """Quasi-Newton at the full load from y (in place) with the inverse tangent H (in place, updated by
     Broyden's 'good' rank-one formula): one integration per needle and iteration. For the control loop:
-    H from the unloaded state (a model constant) or from the last solve. Returns (iterations, status)."""
+    H from the unloaded state (a model constant) or from the last solve. E (needles, 19): the end states
+    (and max |u|) at the last y; have_E: E already holds them at the start y (a warm start from the last
+    answer: the wrench enters the residual only additively, so the needles need no new integration).
+    Returns (iterations, status)."""
     nn = NX.shape[0]
     N = 6 * nn + 6
-    E = np.empty((nn, 18))
     dummy = np.empty((1, 18))
     res = np.empty(N)
     rnew = np.empty(N)
@@ -451,8 +457,9 @@ def broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, maxit):
     dr = np.empty(N)
     Hd = np.empty(N)
     sH = np.empty(N)
-    for k in range(nn):
-        integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k], dummy, False)
+    if not have_E:
+        for k in range(nn):
+            integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k], dummy, False)
     residual(E, y[6 * nn:], NX, P0, W, 1.0, P, res)
     rn = _norm(res)
     for it in range(maxit):
@@ -503,9 +510,9 @@ def broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, maxit):
 
 
 @njit(cache=True)
-def key_numbers(y, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, out):
-    """Clamp-centre displacement (3), clamp rotation vector (3) and the max needle deflection into out (7),
-    compiled (the control loop's answer without the Python post-processing)."""
+def finish(y, E, NX, P0, P, C, zc_top, out):
+    """Clamp-centre displacement (3), clamp rotation vector (3) and the max needle deflection into out (7)
+    from the end states E (needles, 19) at y: the control loop's answer without post-processing."""
     nn = NX.shape[0]
     Q = np.empty((3, 3))
     expm(y[6 * nn + 3: 6 * nn + 6], Q)
@@ -518,33 +525,30 @@ def key_numbers(y, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, out):
             v += (Q[i, j] - (1.0 if i == j else 0.0)) * (C[j] - P0[j])
         out[i] = v
         out[3 + i] = y[6 * nn + 3 + i]
-    nodes = 1
-    for g in range(SN.shape[0]):
-        nodes += SN[g]
-    store = np.empty((nodes, 18))
-    end = np.empty(18)
     best = 0.0
     for k in range(nn):
-        integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, end, store, True)
-        q = 0
-        z = SZ[0]
-        best = max(best, (store[0, 0] - NX[k, 0]) ** 2 + (store[0, 1] - NX[k, 1]) ** 2 + (store[0, 2] - z) ** 2)
-        for g in range(SN.shape[0]):
-            h = (SZ[g + 1] - SZ[g]) / SN[g]
-            for st in range(SN[g]):
-                q += 1
-                z = SZ[g] + (st + 1) * h
-                d = (store[q, 0] - NX[k, 0]) ** 2 + (store[q, 1] - NX[k, 1]) ** 2 + (store[q, 2] - z) ** 2
-                best = max(best, d)
-        X = np.array([NX[k, 0] - P0[0], NX[k, 1] - P0[1], zc_top - P0[2]])
+        best = max(best, E[k, 18])
+        X0 = NX[k, 0] - P0[0]
+        X1 = NX[k, 1] - P0[1]
+        X2 = zc_top - P0[2]
         d = 0.0
         for i in range(3):
-            v = c[i]
-            for j in range(3):
-                v += (Q[i, j] - (1.0 if i == j else 0.0)) * X[j]
+            v = c[i] + (Q[i, 0] - (1.0 if i == 0 else 0.0)) * X0 + (Q[i, 1] - (1.0 if i == 1 else 0.0)) * X1 \
+                + (Q[i, 2] - (1.0 if i == 2 else 0.0)) * X2
             d += v * v
-        best = max(best, d)
-    out[6] = np.sqrt(best)
+        best = max(best, np.sqrt(d))
+    out[6] = best
+
+
+@njit(cache=True)
+def key_numbers(y, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, out):
+    """finish() at y, integrating the needles first."""
+    nn = NX.shape[0]
+    E = np.empty((nn, 19))
+    dummy = np.empty((1, 18))
+    for k in range(nn):
+        integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k], dummy, False)
+    finish(y, E, NX, P0, P, C, zc_top, out)
 
 
 @njit(cache=True)
@@ -552,28 +556,32 @@ def batch(F, M, y0, H0, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, ou
     """N wrenches (rows of F, M) with one model: Broyden from the unloaded state and tangent for each,
     Newton with load stepping when that fails. out (N, 7) as key_numbers; status (N, 2): iterations, code."""
     W = np.empty(6)
+    E = np.empty((NX.shape[0], 19))
     for m in range(F.shape[0]):
         for i in range(3):
             W[i] = F[m, i]
             W[3 + i] = M[m, i]
         y = y0.copy()
         H = H0.copy()
-        it, st = broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol[m], 40)
-        if st != OK:
+        it, st = broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol[m], 40, E)
+        if st == OK:
+            finish(y, E, NX, P0, P, C, zc_top, out[m])
+        else:
             y = y0.copy()
             it2, st, steps = solve_path(y, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol[m], 12)
             it += it2
+            if st == OK:
+                key_numbers(y, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, out[m])
         status[m, 0] = it
         status[m, 1] = st
-        if st == OK:
-            key_numbers(y, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, out[m])
 
 
 @njit(cache=True)
-def pose_solve(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, out):
+def pose_solve(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, out, E, have_E):
     """Broyden from (y, H) then the key numbers, in one call (one dispatch from Python: the control loop).
-    Returns (iterations, status); on status != OK the caller falls back to Newton with load stepping."""
-    it, st = broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, 40)
+    E, have_E as in broyden. Returns (iterations, status); on status != OK the caller falls back to Newton
+    with load stepping."""
+    it, st = broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol, 40, E, have_E)
     if st == OK:
-        key_numbers(y, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, out)
+        finish(y, E, NX, P0, P, C, zc_top, out)
     return it, st

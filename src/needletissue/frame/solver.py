@@ -22,13 +22,21 @@ TOL = 1e-9        # Newton: scaled residual, relative to the scaled load (absolu
 MAX_CUTS = 12
 BROYDEN_MAXIT = 40  # then full Newton with load stepping
 WARM_REFRESH = 4    # warm starts: refresh the stored tangent when a solve needs more passes
+ENDS_CACHE = 8      # pose(): end states kept for warm starts
 WARN_DEFLECTION_RATIO = 0.25   # beyond this fraction of the free length the springs are extrapolated
 
 
-def _kernel():
-    from needletissue.frame import kernel
+_KERNEL = None
 
-    return kernel
+
+def _kernel():
+    """The compiled kernel, imported on first use (Numba compiles or loads its cache then)."""
+    global _KERNEL
+    if _KERNEL is None:
+        from needletissue.frame import kernel
+
+        _KERNEL = kernel
+    return _KERNEL
 
 
 def logm(Q: np.ndarray) -> np.ndarray:
@@ -226,6 +234,9 @@ class FrameResult:
 def _vec(field_name: str, value, n=3) -> np.ndarray:
     if value is None:
         return np.zeros(n)
+    if type(value) is np.ndarray and value.shape == (n,) and value.dtype == np.float64:
+        if math.isfinite(value.sum()):  # the control loop's path: one check instead of n
+            return value.copy()
     try:
         vals = list(value)
     except TypeError:
@@ -238,7 +249,7 @@ def _vec(field_name: str, value, n=3) -> np.ndarray:
 def _tol(disc, W):
     k = _kernel()
     P = disc.P
-    scale = max(np.abs(W[:3]).max() / P[k.FS], np.abs(W[3:]).max() / P[k.MS])
+    scale = max(max(abs(W[0]), abs(W[1]), abs(W[2])) / P[k.FS], max(abs(W[3]), abs(W[4]), abs(W[5])) / P[k.MS])
     return max(TOL * scale, 1e-14)
 
 
@@ -272,7 +283,7 @@ def _run(disc: Discretisation, W: np.ndarray, y0: np.ndarray | None):
     H = (_inverse_tangent(disc) if warm is None else warm).copy()
     yb = y.copy()
     it, st = k.broyden(yb, H, disc.NX, disc.P0, W, disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT, disc.SN, P,
-                       tol, BROYDEN_MAXIT)
+                       tol, BROYDEN_MAXIT, np.empty((nn, 19)))
     if st == k.OK:
         if y0 is not None and (warm is None or it > WARM_REFRESH):
             J = np.empty((yb.size, yb.size))
@@ -357,14 +368,22 @@ def solve(force=None, moment=None, model: FrameModel | None = None, *, error_est
 MAX_LINEAR_DEFLECTION_RATIO = 3.0
 
 
+def _range_constants(model: FrameModel):
+    """(L, EI, n, P_cr) of _check_range, cached per model (the control loop calls it every time)."""
+    cache = model.__dict__.setdefault("_disc_cache", {})
+    if "range" not in cache:
+        L = model.clamp_bottom_mm + (model.depth_mm if model.root == "bone" else 0.0)
+        EI, n = model.bending_stiffness_Nmm2, model.needles
+        # compression along the pins beyond their buckling load: the straight answer would be an unstable
+        # equilibrium. One pin: a cantilever, pi^2 EI / (4 L^2); several: the clamp guides them, pi^2 EI / L^2
+        # (rigid root; the bone's compliance lowers both: a warning below uses the cantilever value).
+        cache["range"] = L, EI, n, math.pi**2 * EI / L**2 / (4.0 if n == 1 else 1.0)
+    return cache["range"]
+
+
 def _check_range(model: FrameModel, F, M):
-    L = model.clamp_bottom_mm + (model.depth_mm if model.root == "bone" else 0.0)
-    EI, n = model.bending_stiffness_Nmm2, model.needles
+    L, EI, n, P_cr = _range_constants(model)
     est = (math.hypot(F[0], F[1]) * L**3 / (3 * EI) + math.hypot(M[0], M[1]) * L**2 / (2 * EI)) / n
-    # compression along the pins beyond their buckling load: the straight answer would be an unstable
-    # equilibrium. One pin: a cantilever, pi^2 EI / (4 L^2); several: the clamp guides them, pi^2 EI / L^2
-    # (rigid root; the bone's compliance lowers both: a warning below uses the cantilever value).
-    P_cr = math.pi**2 * EI / L**2 / (4.0 if n == 1 else 1.0)
     if -F[2] / n > P_cr:
         raise InputError("force_N", f"outside the model's validity: {-F[2] / n:.4g} N of compression per pin is "
                          f"above its buckling load {P_cr:.4g} N (L = {L:g} mm)")
@@ -566,7 +585,9 @@ def pose(force, moment=None, model: FrameModel | None = None, initial=None):
     F, M = _vec("force_N", force), _vec("moment_Nmm", moment)
     _check_range(model, F, M)
     disc = _cached_disc(model, False)
-    W = np.concatenate([F, M])
+    W = np.empty(6)
+    W[:3] = F
+    W[3:] = M
     C = disc.__dict__.get("C")
     if C is None:
         C = np.array(model.clamp_centre_mm)
@@ -575,8 +596,23 @@ def pose(force, moment=None, model: FrameModel | None = None, initial=None):
     H = (_inverse_tangent(disc) if warm is None else warm).copy()
     y = np.zeros(6 * disc.NX.shape[0] + 6) if initial is None else np.array(initial, float)
     out = np.empty(7)
+    # the needles' end states at recent answers: a warm start from one of them needs no integration
+    # before its first step (a few entries, most recently used first: the last answer or a fixed reference)
+    ends = disc.__dict__.get("ends")
+    if ends is None:
+        ends = {}
+        object.__setattr__(disc, "ends", ends)
+    key = y.tobytes() if initial is not None else None
+    hit = ends.pop(key, None) if key is not None else None
+    E = np.empty((disc.NX.shape[0], 19)) if hit is None else hit.copy()
+    if hit is not None:
+        ends[key] = hit
     it, st = k.pose_solve(y, H, disc.NX, disc.P0, W, disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT, disc.SN,
-                          disc.P, C, model.free_length_mm, _tol(disc, W), out)
+                          disc.P, C, model.free_length_mm, _tol(disc, W), out, E, hit is not None)
+    if st == k.OK:
+        ends[y.tobytes()] = E
+        while len(ends) > ENDS_CACHE:
+            del ends[next(iter(ends))]
     if st != k.OK or (initial is not None and (warm is None or it > WARM_REFRESH)):
         y, it, _ = _run(disc, W, None if initial is None else np.asarray(initial, float))
         k.key_numbers(y, disc.NX, disc.P0, disc.SZ, disc.SK, disc.SKH, disc.SKZ, disc.SKT, disc.SN, disc.P,
