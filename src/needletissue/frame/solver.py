@@ -235,7 +235,7 @@ def _vec(field_name: str, value, n=3) -> np.ndarray:
     if value is None:
         return np.zeros(n)
     if type(value) is np.ndarray and value.shape == (n,) and value.dtype == np.float64:
-        if math.isfinite(value.sum()):  # the control loop's path: one check instead of n
+        if math.isfinite(math.fsum(value.tolist())):  # the control loop's path: one check instead of n
             return value.copy()
     try:
         vals = list(value)
@@ -249,7 +249,8 @@ def _vec(field_name: str, value, n=3) -> np.ndarray:
 def _tol(disc, W):
     k = _kernel()
     P = disc.P
-    scale = max(max(abs(W[0]), abs(W[1]), abs(W[2])) / P[k.FS], max(abs(W[3]), abs(W[4]), abs(W[5])) / P[k.MS])
+    w = [abs(x) for x in W.tolist()]
+    scale = max(max(w[:3]) / float(P[k.FS]), max(w[3:]) / float(P[k.MS]))
     return max(TOL * scale, 1e-14)
 
 

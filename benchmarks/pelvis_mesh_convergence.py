@@ -1,0 +1,101 @@
+"""Mesh convergence of the anatomical model (issue 16): max needle deformation and clamp displacement at
+three element sizes in a constant ratio, with the Richardson estimate of the converged value.
+
+All element sizes scale together (tissue at the needles h, needles 2h/3, far field 4h: `fe pelvis`'s
+defaults), so the three runs are one refinement family. Tissue is assigned per tet by its centroid's label
+(docs/pelvis_model.md): the tissue boundaries move with h too, so the observed order includes that
+geometric error, not only the discretisation of one fixed geometry.
+
+    PYTHONPATH=src nice python benchmarks/pelvis_mesh_convergence.py [--sizes 4 3 2.25] \
+        [--out benchmarks/pelvis_convergence.json]
+
+Each size runs in its own process (peak memory per size, a crash loses one size only). Needs ../shared/data.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+FORCES = (100.0, 200.0, 300.0)
+KEYS = ("max_needle_deformation_mm", "clamp_displacement_mm")
+
+
+def run_one(size: float, forces, interfaces: str) -> dict:
+    """One `fe pelvis` solve in this process: per-force results, mesh size, time, memory."""
+    from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
+
+    t = time.perf_counter()
+    res = run_pelvis_model(PelvisConfig(forces=list(forces), mesh_size=size, interfaces=interfaces, figures=False,
+                                        out=None))
+    d = res.to_dict()
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return {"mesh_size_mm": size, "tetrahedra": d["mesh"]["tetrahedra"], "dofs": d["mesh"]["dofs"],
+            "wall_s": time.perf_counter() - t, "cpu_s": ru.ru_utime + ru.ru_stime,
+            "peak_rss_GiB": ru.ru_maxrss / 1024**2,
+            "results": [{k: r[k] for k in ("force_N", *KEYS, "newton_iterations")} for r in d["results"]]}
+
+
+def richardson(h: list, f: list) -> dict:
+    """Observed order p and extrapolated value from three sizes h1 > h2 > h3 in a constant ratio r
+    (Roache's grid convergence index, safety factor 1.25, on the finest pair)."""
+    r = h[0] / h[1]
+    d12, d23 = f[0] - f[1], f[1] - f[2]
+    out = {"ratio": r, "values": f, "monotone": d12 * d23 > 0}
+    if d12 * d23 <= 0 or d23 == 0:
+        out.update(order=None, extrapolated=None, gci_fine=None,
+                   note="not monotone: no asymptotic range; the finest value and the spread are all one can say")
+        return out
+    p = math.log(abs(d12 / d23)) / math.log(r)
+    ext = f[2] + (f[2] - f[1]) / (r**p - 1)
+    out.update(order=p, extrapolated=ext, gci_fine=1.25 * abs(d23 / f[2]) / (r**p - 1),
+               finest_error_rel=(f[2] - ext) / ext)
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=float, nargs=3, default=[4.0, 3.0, 2.25],
+                    help="three tissue element sizes at the needles, mm, in a constant ratio (coarse first)")
+    ap.add_argument("--interfaces", default="bonded", help="bonded or paper (fe pelvis --interfaces)")
+    ap.add_argument("--out", default="benchmarks/pelvis_convergence.json", help="results JSON")
+    ap.add_argument("--one", type=float, help=argparse.SUPPRESS)  # internal: run one size, print JSON
+    a = ap.parse_args()
+    if a.one is not None:
+        print(json.dumps(run_one(a.one, FORCES, a.interfaces)))
+        return
+    h = sorted(a.sizes, reverse=True)
+    if abs(h[0] / h[1] - h[1] / h[2]) > 1e-3 * h[0] / h[1]:
+        ap.error(f"--sizes must be in a constant ratio, got {h}")
+    runs = []
+    for size in h:
+        p = subprocess.run([sys.executable, __file__, "--one", str(size), "--interfaces", a.interfaces],
+                           capture_output=True, text=True)
+        if p.returncode:
+            sys.exit(f"size {size} mm failed:\n{p.stderr[-3000:]}")
+        runs.append(json.loads(p.stdout.strip().splitlines()[-1]))
+        r = runs[-1]
+        print(f"h = {size:g} mm: {r['tetrahedra']} tets, {r['dofs']} dofs, {r['wall_s']:.0f} s wall, "
+              f"{r['cpu_s']:.0f} s CPU, {r['peak_rss_GiB']:.2f} GiB; max needle deformation "
+              + " / ".join(f"{x['max_needle_deformation_mm']:.4f}" for x in r["results"]) + " mm", flush=True)
+    study = {"interfaces": a.interfaces, "sizes_mm": h, "runs": runs, "richardson": {}}
+    for i, F in enumerate(FORCES):
+        for key in KEYS:
+            study["richardson"][f"{key}@{F:g}N"] = richardson(h, [r["results"][i][key] for r in runs])
+    Path(a.out).write_text(json.dumps(study, indent=1) + "\n")
+    for name, v in study["richardson"].items():
+        if v["order"] is None:
+            print(f"{name}: {v['note']}; values {v['values']}")
+        else:
+            print(f"{name}: observed order {v['order']:.2f}, extrapolated {v['extrapolated']:.4f} mm, finest "
+                  f"{v['values'][2]:.4f} mm ({100 * v['finest_error_rel']:+.2f} %), GCI {100 * v['gci_fine']:.2f} %")
+
+
+if __name__ == "__main__":
+    main()
