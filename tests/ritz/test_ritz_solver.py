@@ -66,6 +66,18 @@ def test_batch_equals_single_and_parameters_broadcast():
     assert np.allclose(a[:, 2] * l**2 + a[:, 3] * l**3, b.tip_deflection_mm, rtol=1e-12, atol=1e-12)
 
 
+def test_batch_takes_the_models_load_point():
+    """A model whose force acts below the free end: the batch loads it there too, as solve() does."""
+    model = RitzModel(load_point_mm=70.0)
+    F = np.array([100.0, 200.0, 300.0])
+    b = ritz.solve_batch(F, model=model)
+    for m in range(3):
+        r = ritz.solve(F[m], model)
+        for name in ("tip_deflection_mm", "load_point_deflection_mm", "energy_Nmm", "error_estimate_mm"):
+            assert getattr(b[m], name) == pytest.approx(getattr(r, name), rel=1e-12), name
+    assert not np.allclose(b.tip_deflection_mm, ritz.solve_batch(F, model=RitzModel()).tip_deflection_mm)
+
+
 def test_solve_forces_and_auto_in_batch():
     m = RitzModel()
     rs = ritz.solve_forces([100, 200, 300], m, order="auto")

@@ -332,7 +332,7 @@ def solve_batch(force, *, diameter_mm=None, free_length_mm=None, youngs_modulus_
     """Solve N samples in one compiled call; every argument broadcasts to N.
 
     force: (N,) N. diameter_mm, free_length_mm, youngs_modulus_MPa, load_point_mm: scalars or (N,)
-    (load_point_mm None = free end). thickness_mm, k_N_per_mm2: (layers,) or (N, layers), layers
+    (load_point_mm None = the model's, whose None is the free end). thickness_mm, k_N_per_mm2: (layers,) or (N, layers), layers
     stacked from the bone. Parameters not given come from `model` (default RitzModel()). When only the
     force varies, the model's order-3 energy forms are computed once for the batch.
     error_estimate=False skips the order p + 1 solve behind error_estimate_mm (about half the cost at
@@ -360,6 +360,8 @@ def solve_batch(force, *, diameter_mm=None, free_length_mm=None, youngs_modulus_
     if t.ndim == 0 or k.ndim == 0 or t.shape[-1] != k.shape[-1]:
         raise InputError("thickness_mm/k_N_per_mm2", f"need matching trailing layer axes, got "
                          f"{t.shape} and {k.shape}")
+    if load_point_mm is None:
+        load_point_mm = model.load_point_mm  # the model's own (None: the free end)
     z3 = None if load_point_mm is None else _array("load_point_mm", load_point_mm, gt=0)
     try:
         shape_model = np.broadcast_shapes(d.shape, l.shape, E.shape, t.shape[:-1], k.shape[:-1],
