@@ -225,3 +225,41 @@ def test_elastic_clamp_on_a_line_of_pins_and_one_pin():
     a = frame.solve((0.0, 100.0, 0.0), model=FrameModel(clamp="elastic", **one), error_estimate=False)
     b = frame.solve((0.0, 100.0, 0.0), model=FrameModel(**one), error_estimate=False)
     assert a.clamp_displacement_mm == pytest.approx(b.clamp_displacement_mm, rel=1e-12, abs=1e-14)
+
+
+def test_cli_clamp_option_json_and_config_reads_back(run_cli, tmp_path):
+    """`needletissue frame --clamp elastic ...`: the JSON equals the API's answer, the model echoes the clamp
+    fields, and the resolved config.toml a --plot run writes builds the same FrameModel again."""
+    import json
+    import tomllib
+
+    from needletissue.ritz.model import Layer
+
+    png = tmp_path / "f.png"
+    code, out, err = run_cli("frame", "--clamp", "elastic", "--clamp-modulus", "20000", "--clamp-section", "16,12",
+                             "--force", "200,0,0", "--json", "--plot", png)
+    assert code == 0, err
+    d = json.loads(out)
+    m = FrameModel(clamp="elastic", clamp_E_MPa=20000.0, clamp_section_mm=(16.0, 12.0))
+    want = frame.solve((200.0, 0.0, 0.0), model=m)
+    assert d["results"][0]["clamp_displacement_mm"] == list(want.clamp_displacement_mm)
+    assert d["model"]["clamp"] == "elastic" and d["model"]["clamp_section_mm"] == [16.0, 12.0]
+    assert d["model"]["clamp_bar"]["Iy_mm4"] == pytest.approx(16 * 12**3 / 12)
+    cfg = tomllib.loads((tmp_path / "config.toml").read_text())
+    fields = {f for f in FrameModel.__dataclass_fields__}
+    kw = {k: v for k, v in cfg.items() if k in fields}
+    kw["layers"] = tuple(Layer(**la) for la in kw["layers"])
+    kw = {k: tuple(v) if isinstance(v, list) else v for k, v in kw.items()}
+    assert FrameModel(**kw) == m
+    # the rigid default writes and reads back too (no section: the derived one)
+    code, out, err = run_cli("frame", "--force", "0,100,0", "--json")
+    assert code == 0 and json.loads(out)["model"]["clamp"] == "rigid"
+
+
+@pytest.mark.parametrize("args,field", [(["--clamp", "glue"], "clamp"), (["--clamp-modulus", "-5"], "clamp_E_MPa"),
+                                        (["--clamp", "elastic", "--clamp-section", "20"], "--clamp-section"),
+                                        (["--clamp", "elastic", "--clamp-section", "20,0"], "clamp_section_mm"),
+                                        (["--clamp-poisson", "0.7"], "clamp_nu")])
+def test_cli_bad_clamp_input_exit_2(run_cli, args, field):
+    code, out, err = run_cli("frame", *args)
+    assert code == 2 and field in err and "Traceback" not in err

@@ -16,7 +16,8 @@ interfaces, where f jumps).
 
 Boundary values: at the tip in the bone n = k_tip u_z e3, m = 0 (end bearing), unknown r, R;
 with a rigid root (z = 0): r = X, R = I, unknown n, m. At the clamp end z_c: r = P0 + c + Q (X - P0),
-R = Q with the clamp pose (c, Q = exp(phi)). Unknowns: 6 per needle (shooting) + 6 of the clamp; the
+R = Q with the clamp pose (c, Q = exp(phi)) (elastic clamp: plus the clamp bar's deflection at the pin,
+residual()). Unknowns: 6 per needle (shooting) + 6 of the clamp; the
 residuals: 6 per needle (end mismatch) + 6 clamp equilibrium with the applied wrench (dead load) at
 P0 + c. Newton with a forward-difference Jacobian (one integration per needle unknown), load
 stepping with cut-back.
