@@ -263,3 +263,15 @@ def test_cli_clamp_option_json_and_config_reads_back(run_cli, tmp_path):
 def test_cli_bad_clamp_input_exit_2(run_cli, args, field):
     code, out, err = run_cli("frame", *args)
     assert code == 2 and field in err and "Traceback" not in err
+
+
+def test_elastic_clamp_with_the_plastic_section():
+    """The compliance sits after the moment-curvature table in the constants: with plastic=True the stiff clamp is
+    still the rigid one, and the steel clamp still softens the portal frame."""
+    F = (300.0, 0.0, 0.0)
+    rigid = frame.solve(F, model=FrameModel(plastic=True), error_estimate=False)
+    stiff = frame.solve(F, model=FrameModel(plastic=True, clamp="elastic", clamp_E_MPa=2e14), error_estimate=False)
+    steel = frame.solve(F, model=FrameModel(plastic=True, clamp="elastic"), error_estimate=False)
+    a, b, c = (np.array(r.load_point_displacement_mm) for r in (rigid, stiff, steel))
+    assert np.linalg.norm(b - a) <= 1e-9 * np.linalg.norm(a)
+    assert c[0] > a[0] * (1 + 2e-4)
