@@ -168,6 +168,12 @@ class FrameModel:
     foundation_factor, axial_factor, tissue_factor: multiply the derived bone foundation (lateral and
     torsion; axial shaft and tip bearing) and the layers' k (1 = the physical values; calibrate() fits
     them to FE or measurements).
+    clamp: "rigid" (default: a rigid body) or "elastic": a straight Timoshenko bar along the line of the pins
+    (x for one pin) at the clamp's centre height, condensed to a compliance at the pins' ends
+    (`clamp_compliance`). Its defaults are `fe needle`'s clamp bar: clamp_E_MPa 200,000 MPa and clamp_nu 0.30
+    (materials registry "clamp", structural steel, paper Table 2), section clamp_section_mm = None ->
+    (clamp_width_mm, clamp_length_mm) = 20 x 20 mm (width along y, height along z; NeedleGeometry.clamp_width
+    and grip_length, the bar of NeedleGeometry.clamp_box). The pins must lie on one line.
     """
 
     needles: int = DEFAULT_NEEDLES
