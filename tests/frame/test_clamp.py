@@ -214,6 +214,20 @@ def test_bad_clamp_input_names_the_field(kw, field):
     assert exc.value.field == field
 
 
+def test_pins_off_the_bar_axis_within_its_width():
+    """3 pins not quite on a line: held by the bar through rigid arms while inside its width (the answer close to
+    the collinear one), refused beyond it."""
+    F = (80.0, 40.0, 0.0)
+    kw = dict(needles=3, root="rigid", tissue=False, clamp="elastic", clamp_E_MPa=2e4)
+    line = frame.solve(F, model=FrameModel(needle_xy=((-30.0, 0.0), (0.0, 0.0), (30.0, 0.0)), **kw),
+                       error_estimate=False)
+    bent = frame.solve(F, model=FrameModel(needle_xy=((-30.0, 0.0), (0.0, 0.3), (30.0, 0.0)), **kw),
+                       error_estimate=False)
+    assert np.allclose(bent.clamp_displacement_mm, line.clamp_displacement_mm, rtol=0.02, atol=1e-3)
+    with pytest.raises(InputError, match="off its axis"):
+        FrameModel(needle_xy=((-30.0, 0.0), (0.0, 20.0), (30.0, 0.0)), **kw)  # 13.3 mm off the axis
+
+
 def test_elastic_clamp_on_a_line_of_pins_and_one_pin():
     """Three pins on an oblique line are a bar; one pin under its load point has nothing to bend (rigid answer)."""
     xy = ((0.0, 0.0), (24.0, 18.0), (48.0, 36.0))

@@ -94,8 +94,8 @@ def _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length,
 def register(app: typer.Typer, groups) -> None:
     o, o2 = _opts(), _opts()
     frame_app = typer.Typer(help="Needle-frame model: n pins from the bone (elastic foundation) through the "
-                            "tissue springs to a clamp (rigid or elastic), any wrench, large deflection (docs/frame.md). "
-                            "Without a subcommand: solve for each --force.", invoke_without_command=True,
+                            "tissue springs to a clamp (rigid or elastic), any wrench, large deflection "
+                            "(docs/frame.md). Without a subcommand: solve for each --force.", invoke_without_command=True,
                             no_args_is_help=False)
 
     @frame_app.callback(invoke_without_command=True)

@@ -310,13 +310,16 @@ class FrameModel:
                                      f"needles {j + 1} and {i + 1} are {dist:g} mm apart, closer than their "
                                      f"diameter {d} mm")
         if self.clamp == "elastic" and len(xy) > 2:
+            # the bar runs along the line of the pins; a pin off its axis is held by the bar's section through a
+            # rigid arm, as long as it lies inside the section's width
             e = clamp_bar_direction(xy)
             o = np.mean(xy, axis=0)
-            off = max(abs(-e[1] * (x - o[0]) + e[0] * (y - o[1])) for x, y in xy)
-            if off > 1e-9 * max(1.0, float(np.ptp(np.asarray(xy)))):
-                raise InputError("needle_xy", f"the elastic clamp is a straight bar: the pins must lie on one line, "
-                                 f"pin {1 + int(np.argmax([abs(-e[1] * (x - o[0]) + e[0] * (y - o[1])) for x, y in xy]))} "
-                                 f"is {off:.3g} mm off it")
+            off = [abs(-e[1] * (x - o[0]) + e[0] * (y - o[1])) for x, y in xy]
+            width = (self.clamp_section_mm or (self.clamp_width_mm,))[0]
+            if max(off) > width / 2:
+                i = int(np.argmax(off))
+                raise InputError("needle_xy", f"the elastic clamp is a straight bar {width:g} mm wide along the line "
+                                 f"of the pins: pin {i + 1} is {off[i]:.3g} mm off its axis, more than half its width")
         if self.load_point_mm is None:
             lp = (self.centre_xy[0], self.centre_xy[1], self.free_length_mm - self.clamp_length_mm / 2)
         else:
