@@ -28,7 +28,7 @@ def _opts():
         depth=typer.Option(M.DEFAULT_DEPTH_MM, "--depth", help="Insertion depth in the bone, mm (> cortex)."),
         cortex=typer.Option(M.DEFAULT_CORTEX_MM, "--cortex", help="Cortical shell thickness, mm (> 0)."),
         clamp_length=typer.Option(M.DEFAULT_CLAMP_LENGTH_MM, "--clamp-length",
-                                  help="Pin length held in the rigid clamp below the pin end, mm (>= 0)."),
+                                  help="Pin length held in the clamp below the pin end, mm (>= 0)."),
         layer=typer.Option(None, "--layer", help="Tissue layer NAME:THICKNESS_MM:K (K in N/mm per mm of pin = "
                            "N/mm^2, the paper's F = k (x + x^3)), repeat, stacked from the bone. Default "
                            "muscle:22:0.048 adipose:10:0.023."),
@@ -52,6 +52,15 @@ def _opts():
                                     "the plate bone law's cancellous core lies between the cortex and it."),
         bone_law=typer.Option("plate", "--bone-law", help="plate (the cortex as a plate on a confined "
                               "cancellous core, default) or winkler (the earlier uniform foundation)."),
+        clamp=typer.Option("rigid", "--clamp", help="rigid (a rigid body) or elastic (a Timoshenko bar along the "
+                           "pins with its section and modulus; docs/frame.md)."),
+        clamp_modulus=typer.Option(M.CLAMP_E_MPA, "--clamp-modulus", help="Young's modulus of the elastic clamp "
+                                   "bar, MPa (> 0; default fe needle's steel, 200000)."),
+        clamp_poisson=typer.Option(M.CLAMP_NU, "--clamp-poisson", help="Poisson's ratio of the elastic clamp bar "
+                                   "(dimensionless, -1..0.5; default 0.30)."),
+        clamp_section=typer.Option(None, "--clamp-section", help="Section of the elastic clamp bar W,H in mm: width "
+                                   "along y, height along z (> 0); default fe needle's bar, 20 mm x the clamp "
+                                   "length."),
         moment=typer.Option(None, "--moment", help="Moment MX,MY,MZ at the load point, N mm (with every force)."),
         json_out=typer.Option(False, "--json", help="Print JSON {model, results} instead of a table."),
     )
@@ -59,7 +68,8 @@ def _opts():
 
 def _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length, layer, no_tissue, root,
            load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor=1.0, calibrated=False,
-           plastic=False, bone_thickness=None, bone_law="plate"):
+           plastic=False, bone_thickness=None, bone_law="plate", clamp="rigid", clamp_modulus=None,
+           clamp_poisson=None, clamp_section=None):
     from needletissue.frame.model import FE_CALIBRATION, FrameModel
     from needletissue.ritz.model import DEFAULT_LAYERS, Layer
 
@@ -74,15 +84,18 @@ def _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length,
                       tissue=not no_tissue, root=root, load_point_mm=_triple("--load-point", load_point),
                       foundation_factor=foundation_factor, tissue_factor=tissue_factor,
                       axial_factor=axial_factor, youngs_modulus_MPa=youngs_modulus, plastic=plastic,
-                      bone_law=bone_law,
-                      **({} if bone_thickness is None else {"bone_thickness_mm": bone_thickness}))
+                      bone_law=bone_law, clamp=clamp,
+                      clamp_section_mm=None if clamp_section is None else numbers("--clamp-section", clamp_section, 2),
+                      **({} if bone_thickness is None else {"bone_thickness_mm": bone_thickness}),
+                      **({} if clamp_modulus is None else {"clamp_E_MPa": clamp_modulus}),
+                      **({} if clamp_poisson is None else {"clamp_nu": clamp_poisson}))
 
 
 def register(app: typer.Typer, groups) -> None:
     o, o2 = _opts(), _opts()
     frame_app = typer.Typer(help="Needle-frame model: n pins from the bone (elastic foundation) through the "
-                            "tissue springs to a rigid clamp, any wrench, large deflection (docs/frame.md). "
-                            "Without a subcommand: solve for each --force.", invoke_without_command=True,
+                            "tissue springs to a clamp (rigid or elastic), any wrench, large deflection "
+                            "(docs/frame.md). Without a subcommand: solve for each --force.", invoke_without_command=True,
                             no_args_is_help=False)
 
     @frame_app.callback(invoke_without_command=True)
@@ -99,6 +112,8 @@ def register(app: typer.Typer, groups) -> None:
         axial_factor: float = o["axial_factor"], calibrated: bool = o["calibrated"],
         plastic: bool = o["plastic"], bone_thickness: float = o["bone_thickness"],
         bone_law: str = o["bone_law"],
+        clamp: str = o["clamp"], clamp_modulus: float = o["clamp_modulus"],
+        clamp_poisson: float = o["clamp_poisson"], clamp_section: Optional[str] = o["clamp_section"],
         json_out: bool = o["json_out"],
         plot: Optional[Path] = typer.Option(None, "--plot", help="Draw each pin's deflection per force to "
                                             "FILE.png; config.toml, versions.json, results.json beside it."),
@@ -110,7 +125,7 @@ def register(app: typer.Typer, groups) -> None:
 
         model = _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length, layer, no_tissue,
                        root, load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor, calibrated,
-                       plastic, bone_thickness, bone_law)
+                       plastic, bone_thickness, bone_law, clamp, clamp_modulus, clamp_poisson, clamp_section)
         M = _triple("--moment", moment)
         forces = [_triple("--force", f) for f in force] if force else [(0.0, F, 0.0) for F in (100.0, 200.0, 300.0)]
         results = [solve(f, M, model) for f in forces]
@@ -146,6 +161,8 @@ def register(app: typer.Typer, groups) -> None:
         axial_factor: float = o2["axial_factor"], calibrated: bool = o2["calibrated"],
         plastic: bool = o2["plastic"], bone_thickness: float = o2["bone_thickness"],
         bone_law: str = o2["bone_law"],
+        clamp: str = o2["clamp"], clamp_modulus: float = o2["clamp_modulus"],
+        clamp_poisson: float = o2["clamp_poisson"], clamp_section: Optional[str] = o2["clamp_section"],
         json_out: bool = o2["json_out"],
     ):
         """Clamp pose to command so that the bone fragment reaches its target under the wrench."""
@@ -153,7 +170,7 @@ def register(app: typer.Typer, groups) -> None:
 
         model = _model(needles, spacing, diameter, free_length, depth, cortex, clamp_length, layer, no_tissue,
                        root, load_point, foundation_factor, tissue_factor, youngs_modulus, axial_factor, calibrated,
-                       plastic, bone_thickness, bone_law)
+                       plastic, bone_thickness, bone_law, clamp, clamp_modulus, clamp_poisson, clamp_section)
         c = comp(_triple("--target", target), _triple("--target-rotation", target_rotation),
                  _triple("--force", force), _triple("--moment", moment), model, wrench_frame=wrench_frame,
                  detail=True)
@@ -188,7 +205,7 @@ def _table(model, results):
     from rich.table import Table
 
     t = Table(title=f"Needle frame: {model.needles} pin(s) d={model.diameter_mm:g} mm, l={model.free_length_mm:g} mm, "
-              f"depth {model.depth_mm:g} mm ({model.root} root), clamp {model.clamp_length_mm:g} mm, "
+              f"depth {model.depth_mm:g} mm ({model.root} root), {model.clamp} clamp {model.clamp_length_mm:g} mm, "
               f"tissue {'on' if model.tissue else 'off'}")
     for col in ("F N", "clamp u mm", "|rot| rad", "max pin mm", "slope rad", "yield", "err mm"):
         t.add_column(col, justify="right")

@@ -1,6 +1,6 @@
 """Needle-frame reduced-order model: n Schanz pins (geometrically exact rods) from their tips in the
 bone (elastic foundation: cortex and cancellous bone) through the tissue layers (the paper's springs)
-to a rigid clamp, loaded by a full wrench. docs/frame.md.
+to a clamp (rigid, or an elastic bar: clamp="elastic"), loaded by a full wrench. docs/frame.md.
 
     from needletissue import frame
     r = frame.solve(force=(0, 300, 0))                      # fe needle's defaults: 2 pins, 5 mm, l = 100

@@ -16,7 +16,8 @@ interfaces, where f jumps).
 
 Boundary values: at the tip in the bone n = k_tip u_z e3, m = 0 (end bearing), unknown r, R;
 with a rigid root (z = 0): r = X, R = I, unknown n, m. At the clamp end z_c: r = P0 + c + Q (X - P0),
-R = Q with the clamp pose (c, Q = exp(phi)). Unknowns: 6 per needle (shooting) + 6 of the clamp; the
+R = Q with the clamp pose (c, Q = exp(phi)) (elastic clamp: plus the clamp bar's deflection at the pin,
+residual()). Unknowns: 6 per needle (shooting) + 6 of the clamp; the
 residuals: 6 per needle (end mismatch) + 6 clamp equilibrium with the applied wrench (dead load) at
 P0 + c. Newton with a forward-difference Jacobian (one integration per needle unknown), load
 stepping with cut-back.
@@ -28,11 +29,15 @@ import numpy as np
 from numba import njit
 
 # constants vector P
-EI, GJ, EA, KGA, SHEAR, KTIP, LS, FS, MS, Z0, ZC, RIGID, NPL = range(13)
-NP = 13
+EI, GJ, EA, KGA, SHEAR, KTIP, LS, FS, MS, Z0, ZC, RIGID, NPL, ELASTIC, CLO = range(15)
+NP = 15
 # With an elastic-plastic section, P[NP:] holds the moment-curvature table of the section: NPL points
 # curvature kappa_i (1/mm), then moment M_i (N mm), then dkappa/dM at the nodes (cubic Hermite kappa(M), C1),
 # monotonic loading (deformation theory).
+# With an elastic clamp (P[ELASTIC] = 1), P[P[CLO]:] holds its compliance (6n x 6n, row-major; after the plastic
+# table): the displacement and rotation of pin k's attachment, in the clamp's co-rotated axes and relative to
+# its reference section (the load point's), per unit force and moment that pin j exerts on the clamp there
+# (frame.model.clamp_compliance).
 OK, MAX_ITER, NOT_FINITE, CUTBACK = 0, 1, 2, 3
 _FD = 1e-7
 # Newton's own forward-difference step (scaled unknowns). 1e-7 was too coarse where the shooting residual is
@@ -245,11 +250,45 @@ def integrate(a, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, end, store, do_store):
 
 
 @njit(cache=True)
+def _clamp_deflection(E, Q, P, D):
+    """Elastic clamp: the deflection D[k] = (displacement, rotation) of pin k's attachment relative to the clamp's
+    reference section, in the clamp's axes, under the end wrenches of all pins: the wrench pin j exerts on the
+    clamp is (-n_j, -m_j) (global), Q^T (-n_j, -m_j) in the clamp's axes; D = C w (small strain)."""
+    nn = E.shape[0]
+    N6 = 6 * nn
+    off = int(P[CLO])
+    w = np.empty(N6)
+    for j in range(nn):
+        for a in range(3):
+            vf = 0.0
+            vm = 0.0
+            for b in range(3):
+                vf -= Q[b, a] * E[j, 12 + b]
+                vm -= Q[b, a] * E[j, 15 + b]
+            w[6 * j + a] = vf
+            w[6 * j + 3 + a] = vm
+    for r in range(N6):
+        v = 0.0
+        base = off + r * N6
+        for c in range(N6):
+            v += P[base + c] * w[c]
+        D[r // 6, r % 6] = v
+
+
+@njit(cache=True)
 def residual(E, yc, NX, P0, W, lam, P, res):
-    """Scaled residuals: per needle end position and rotation mismatch, then the clamp's equilibrium."""
+    """Scaled residuals: per needle end position and rotation mismatch, then the clamp's equilibrium.
+
+    Rigid clamp: pin k's end must be at P0 + c + Q (X_k - P0) with the rotation Q. Elastic clamp: at its
+    attachment's deflected pose, P0 + c + Q (X_k - P0 + du_k) and Q exp(dtheta_k), (du_k, dtheta_k) the clamp's
+    compliance times the pins' end wrenches in the clamp's axes (_clamp_deflection)."""
     nn = NX.shape[0]
     Q = np.empty((3, 3))
     expm(yc[3:6], Q)
+    elastic = P[ELASTIC] > 0.0
+    D = np.zeros((nn, 6))
+    if elastic:
+        _clamp_deflection(E, Q, P, D)
     c0 = yc[0] * P[LS]
     c1 = yc[1] * P[LS]
     c2 = yc[2] * P[LS]
@@ -268,6 +307,8 @@ def residual(E, yc, NX, P0, W, lam, P, res):
         X2 = P[ZC] - P0[2]
         for i in range(3):
             target = P0[i] + yc[i] * P[LS] + Q[i, 0] * X0 + Q[i, 1] * X1 + Q[i, 2] * X2
+            if elastic:
+                target += Q[i, 0] * D[k, 0] + Q[i, 1] * D[k, 1] + Q[i, 2] * D[k, 2]
             res[6 * k + i] = (E[k, i] - target) / P[LS]
         # 0.5 vee(Q^T R - R^T Q), R[i, j] = E[k, 3 + 3 i + j]
         A = np.zeros((3, 3))
@@ -280,6 +321,10 @@ def residual(E, yc, NX, P0, W, lam, P, res):
         res[6 * k + 3] = 0.5 * (A[2, 1] - A[1, 2])
         res[6 * k + 4] = 0.5 * (A[0, 2] - A[2, 0])
         res[6 * k + 5] = 0.5 * (A[1, 0] - A[0, 1])
+        if elastic:  # the attachment's section turned by dtheta_k (small) relative to the reference
+            res[6 * k + 3] -= D[k, 3]
+            res[6 * k + 4] -= D[k, 4]
+            res[6 * k + 5] -= D[k, 5]
         n0, n1, n2 = E[k, 12], E[k, 13], E[k, 14]
         r0 = E[k, 0] - p0
         r1 = E[k, 1] - p1

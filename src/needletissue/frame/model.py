@@ -43,6 +43,10 @@ CANCELLOUS_SUBSEGMENTS = 4   # the confined cancellous modulus varies with depth
 NEEDLE_NU = 0.30
 CORTICAL_E_MPA, CORTICAL_NU = 17000.0, 0.30
 CANCELLOUS_E_MPA, CANCELLOUS_NU = 150.0, 0.20
+# The clamp bar of `fe needle` (materials registry "clamp": structural steel, paper Table 2), MPa. Its section is
+# the bar's: clamp_width_mm (y) x clamp_length_mm (z, the grip length), NeedleGeometry.clamp_box.
+CLAMP_E_MPA, CLAMP_NU = 200000.0, 0.30
+CLAMPS = ("rigid", "elastic")
 
 # Strengths (validity checks, not model inputs), MPa.
 # Ti-6Al-4V annealed: tensile yield 880 MPa (ASM Aerospace Specification Metals, Ti-6Al-4V Grade 5
@@ -164,6 +168,12 @@ class FrameModel:
     foundation_factor, axial_factor, tissue_factor: multiply the derived bone foundation (lateral and
     torsion; axial shaft and tip bearing) and the layers' k (1 = the physical values; calibrate() fits
     them to FE or measurements).
+    clamp: "rigid" (default: a rigid body) or "elastic": a straight Timoshenko bar along the line of the pins
+    (x for one pin) at the clamp's centre height, condensed to a compliance at the pins' ends
+    (`clamp_compliance`). Its defaults are `fe needle`'s clamp bar: clamp_E_MPa 200,000 MPa and clamp_nu 0.30
+    (materials registry "clamp", structural steel, paper Table 2), section clamp_section_mm = None ->
+    (clamp_width_mm, clamp_length_mm) = 20 x 20 mm (width along y, height along z; NeedleGeometry.clamp_width
+    and grip_length, the bar of NeedleGeometry.clamp_box). The pins must lie on one line.
     """
 
     needles: int = DEFAULT_NEEDLES
@@ -203,6 +213,14 @@ class FrameModel:
     bone_thickness_mm: float = DEFAULT_BONE_THICKNESS_MM  # the bone's far side (held) at z = -bone_thickness
     cortex_factor: float = 1.0       # on the cortex plate's rocking and axial springs (plate law)
     confinement_factor: float = 1.0  # c in confined_radius: how far the field reaches, per distance to a face
+    # clamp: "rigid" (a rigid body) or "elastic" (a straight Timoshenko bar along the line of the pins, through
+    # their attachment points and the load point; `clamp_compliance`, docs/frame.md)
+    clamp: str = "rigid"
+    clamp_E_MPa: float = CLAMP_E_MPA   # Young's modulus of the clamp bar, MPa (fe needle: steel, paper Table 2)
+    clamp_nu: float = CLAMP_NU         # Poisson's ratio of the clamp bar (fe needle: 0.30)
+    # (width along y, height along z) of the clamp bar's rectangular section, mm; None = (clamp_width_mm,
+    # clamp_length_mm): fe needle's bar, clamp_width wide and the grip length tall
+    clamp_section_mm: tuple | None = None
 
     def __post_init__(self):
         if isinstance(self.needles, bool) or not isinstance(self.needles, (int, np.integer)) \
@@ -221,6 +239,22 @@ class FrameModel:
         check_number("axial_factor", self.axial_factor, le=MAX_FACTOR)
         check_number("cortex_factor", self.cortex_factor, le=MAX_FACTOR)
         check_number("confinement_factor", self.confinement_factor, le=MAX_FACTOR)
+        if self.clamp not in CLAMPS:
+            raise InputError("clamp", f"must be one of {CLAMPS}, got {self.clamp!r}")
+        check_number("clamp_E_MPa", self.clamp_E_MPa, gt=0)
+        check_number("clamp_nu", self.clamp_nu, gt=-1, lt=0.5)
+        if self.clamp_section_mm is not None:
+            try:
+                sec = tuple(float(check_number("clamp_section_mm", v, gt=0)) for v in self.clamp_section_mm)
+            except TypeError:
+                raise InputError("clamp_section_mm", f"expected (width, height) in mm, got "
+                                 f"{self.clamp_section_mm!r}") from None
+            if len(sec) != 2:
+                raise InputError("clamp_section_mm", f"expected (width, height) in mm, got {self.clamp_section_mm!r}")
+            object.__setattr__(self, "clamp_section_mm", sec)
+        elif self.clamp == "elastic" and not self.clamp_length_mm > 0:
+            raise InputError("clamp_section_mm", "the elastic clamp needs a section: clamp_length_mm is 0 (no bar "
+                             "to take the height from); give clamp_section_mm = (width, height) in mm")
         if self.bone_law not in BONE_LAWS:
             raise InputError("bone_law", f"must be one of {BONE_LAWS}, got {self.bone_law!r}")
         for name in ("poisson", "cortical_nu", "cancellous_nu"):
@@ -275,6 +309,17 @@ class FrameModel:
                     raise InputError("needle_xy" if given_xy else "spacing_mm",
                                      f"needles {j + 1} and {i + 1} are {dist:g} mm apart, closer than their "
                                      f"diameter {d} mm")
+        if self.clamp == "elastic" and len(xy) > 2:
+            # the bar runs along the line of the pins; a pin off its axis is held by the bar's section through a
+            # rigid arm, as long as it lies inside the section's width
+            e = clamp_bar_direction(xy)
+            o = np.mean(xy, axis=0)
+            off = [abs(-e[1] * (x - o[0]) + e[0] * (y - o[1])) for x, y in xy]
+            width = (self.clamp_section_mm or (self.clamp_width_mm,))[0]
+            if max(off) > width / 2:
+                i = int(np.argmax(off))
+                raise InputError("needle_xy", f"the elastic clamp is a straight bar {width:g} mm wide along the line "
+                                 f"of the pins: pin {i + 1} is {off[i]:.3g} mm off its axis, more than half its width")
         if self.load_point_mm is None:
             lp = (self.centre_xy[0], self.centre_xy[1], self.free_length_mm - self.clamp_length_mm / 2)
         else:
@@ -405,6 +450,22 @@ class FrameModel:
             out.append((float(z0), float(z1), float(np.dot(wg, ks) / 2)))
         return out
 
+    @property
+    def clamp_section(self) -> dict:
+        """The clamp bar's section (rectangle, width b along y, height h along z; mm, mm^2, mm^4) and moduli
+        (MPa): A = b h, I_y = b h^3 / 12 (bending in the pins' plane: the portal frame), I_z = h b^3 / 12
+        (bending across it), the torsion constant of a rectangle J = a c^3 (1/3 - 0.21 (c/a) (1 - c^4 /
+        (12 a^4))), a >= c its sides (Roark, Table 10.7 case 4; 0.1 % of the exact series for a square), and
+        Cowper's (1966) shear factor of a rectangle k = 10 (1 + nu) / (12 + 11 nu)."""
+        b, h = self.clamp_section_mm if self.clamp_section_mm is not None else (self.clamp_width_mm,
+                                                                              self.clamp_length_mm)
+        a, c = max(b, h), min(b, h)
+        E, nu = self.clamp_E_MPa, self.clamp_nu
+        return {"width_mm": b, "height_mm": h, "area_mm2": b * h, "Iy_mm4": b * h**3 / 12, "Iz_mm4": h * b**3 / 12,
+                "J_mm4": a * c**3 * (1 / 3 - 0.21 * (c / a) * (1 - c**4 / (12 * a**4))) if c > 0 else 0.0,
+                "shear_factor": 10 * (1 + nu) / (12 + 11 * nu), "E_MPa": E, "G_MPa": E / (2 * (1 + nu)),
+                "axis_z_mm": self.free_length_mm - self.clamp_length_mm / 2}
+
     def replace(self, **changes) -> "FrameModel":
         if "needles" in changes and "needle_xy" not in changes:
             changes["needle_xy"] = None
@@ -421,7 +482,75 @@ class FrameModel:
         d["bending_stiffness_Nmm2"] = self.bending_stiffness_Nmm2
         d["foundation_N_per_mm2"] = self.foundation
         d["clamp_centre_mm"] = list(self.clamp_centre_mm)
+        if self.clamp_section_mm is not None:
+            d["clamp_section_mm"] = list(self.clamp_section_mm)
+        if self.clamp == "elastic":
+            d["clamp_bar"] = self.clamp_section
         return d
+
+
+def clamp_bar_direction(xy) -> np.ndarray:
+    """Unit direction (x, y) of the clamp bar in plan: the line of the pins (principal direction of their
+    positions); one pin: x, like fe needle's bar."""
+    xy = np.asarray(xy, float)
+    if len(xy) < 2:
+        return np.array([1.0, 0.0])
+    d = xy - xy.mean(0)
+    e = np.linalg.svd(d)[2][0]
+    if e[0] < 0 or (e[0] == 0 and e[1] < 0):
+        e = -e
+    return e
+
+
+def clamp_compliance(model: FrameModel, points) -> np.ndarray:
+    """Compliance (6p x 6p) of the elastic clamp bar between points rigid with it: block (a, b) maps a force (N)
+    and a moment (N mm, about point b) applied at point b to the displacement (mm) and rotation (rad) of point a,
+    with the bar's section through the load point held (the clamp's reference: it carries the applied wrench,
+    so the pins' end wrenches load the bar against it). Axes: the clamp's (global at rest).
+
+    The bar: a straight prismatic Timoshenko beam (`clamp_section`) along the line of the pins in plan (x for one
+    pin), at the height of the clamp's centre (z = free_length - clamp_length / 2). A point X belongs to the bar
+    section at its projection xi(X) on the axis. Unit-load method: a wrench (f, m) at X_b is carried between the
+    reference section xi_L and xi(X_b) by the stress resultant F = f, M(xi) = m + (X_b - p(xi)) x f, so
+
+        C_ab = int_overlap R_a(xi)^T D^-1 R_b(xi) dxi,   D = diag(EA, kGA, kGA, GJ, EI_y, EI_z)
+
+    in the bar's axes (axial, across in plan, vertical), the overlap the part of the axis between xi_L and both
+    points (zero for points on opposite sides of the reference). R is linear in xi, so 2-point Gauss is exact."""
+    pts = np.atleast_2d(np.asarray(points, float))
+    p = len(pts)
+    sec = model.clamp_section
+    e2 = clamp_bar_direction(model.needle_xy)
+    E3 = np.array([[e2[0], -e2[1], 0.0], [e2[1], e2[0], 0.0], [0.0, 0.0, 1.0]])  # columns: axis, across, up
+    o = np.array([*np.mean(np.asarray(model.needle_xy, float), 0), sec["axis_z_mm"]])
+    E, G, A, k = sec["E_MPa"], sec["G_MPa"], sec["area_mm2"], sec["shear_factor"]
+    Dinv = 1.0 / np.array([E * A, k * G * A, k * G * A, G * sec["J_mm4"], E * sec["Iy_mm4"], E * sec["Iz_mm4"]])
+    xi = (pts - o) @ E3[:, 0]
+    xiL = (np.asarray(model.load_point_mm, float) - o) @ E3[:, 0]
+    s = xi - xiL
+    gx = np.array([0.5 - 0.5 / math.sqrt(3), 0.5 + 0.5 / math.sqrt(3)])
+
+    def R(X, x):  # resultant in bar axes per unit (f, m) at X, at the section x
+        d = X - (o + x * E3[:, 0])
+        cross = np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]])
+        out = np.zeros((6, 6))
+        out[:3, :3] = E3.T
+        out[3:, :3] = E3.T @ cross
+        out[3:, 3:] = E3.T
+        return out
+
+    C = np.zeros((6 * p, 6 * p))
+    for a in range(p):
+        for b in range(p):
+            if s[a] * s[b] <= 0:
+                continue
+            ell = min(abs(s[a]), abs(s[b]))
+            blk = np.zeros((6, 6))
+            for g in gx:
+                x = xiL + math.copysign(g * ell, s[a])
+                blk += 0.5 * ell * R(pts[a], x).T @ (Dinv[:, None] * R(pts[b], x))
+            C[6 * a: 6 * a + 6, 6 * b: 6 * b + 6] = blk
+    return C
 
 
 def moment_curvature(model: FrameModel, points: int = 160) -> tuple[np.ndarray, np.ndarray]:

@@ -15,7 +15,7 @@ import numpy as np
 
 from needletissue.errors import ConvergenceError, InputError, check_number
 from needletissue.frame.model import (
-    CANCELLOUS_STRENGTH_MPA, CORTICAL_STRENGTH_MPA, FrameModel, shear_factor,
+    CANCELLOUS_STRENGTH_MPA, CORTICAL_STRENGTH_MPA, FrameModel, clamp_compliance, shear_factor,
 )
 
 TOL = 1e-9        # Newton: scaled residual, relative to the scaled load (absolute floor 1e-14)
@@ -82,6 +82,29 @@ class Discretisation:
     H0: np.ndarray | None = None  # inverse tangent at rest (set on first use)
 
 
+def _attachments(model: FrameModel) -> np.ndarray:
+    """Where the pins enter the clamp (their built-in ends), (n, 3) mm."""
+    xy = np.asarray(model.needle_xy, float)
+    return np.column_stack([xy, np.full(len(xy), model.clamp_bottom_mm)])
+
+
+def _clamp_tops(model: FrameModel, disc, store, Q) -> np.ndarray | None:
+    """Elastic clamp: the deflection (displacement, rotation; clamp axes, relative to its reference section) of
+    each pin's top (z = free length, gripped) under the pins' end wrenches, (n, 6); None for the rigid clamp."""
+    if model.clamp != "elastic":
+        return None
+    cache = model.__dict__.setdefault("_clamp_cache", {})
+    if "tops" not in cache:
+        A = _attachments(model)
+        T = A.copy()
+        T[:, 2] = model.free_length_mm
+        n6 = 6 * len(A)
+        cache["tops"] = clamp_compliance(model, np.vstack([A, T]))[n6:, :n6]
+    end = store[:, -1, :]
+    w = np.concatenate([np.concatenate([Q.T @ -e[12:15], Q.T @ -e[15:18]]) for e in end])
+    return (cache["tops"] @ w).reshape(-1, 6)
+
+
 def discretise(model: FrameModel, coarse: bool = False) -> Discretisation:
     """Segments along a needle and the constants; coarse: half the (even) step counts, for the error
     estimate."""
@@ -125,18 +148,24 @@ def discretise(model: FrameModel, coarse: bool = False) -> Discretisation:
     SN = np.array(SN, np.int64)
     kGA = shear_factor(m.poisson) * m.shear_modulus_MPa * m.area_mm2
     L = m.free_length_mm
+    nc = 36 * m.needles**2 if m.clamp == "elastic" else 0  # the elastic clamp's compliance, after the table
     if m.plastic:
         from needletissue.frame.model import moment_curvature, section_tangent
 
         kap, Mk = moment_curvature(m)
         n = kap.size
-        P = np.zeros(k.NP + 3 * n)
+        P = np.zeros(k.NP + 3 * n + nc)
         P[k.NPL] = n
         P[k.NP: k.NP + n] = kap
         P[k.NP + n: k.NP + 2 * n] = Mk
-        P[k.NP + 2 * n:] = 1.0 / section_tangent(m, kap)  # dkappa/dM at the nodes: a C1 (Hermite) kappa(M)
+        P[k.NP + 2 * n: k.NP + 3 * n] = 1.0 / section_tangent(m, kap)  # dkappa/dM at the nodes: a C1 kappa(M)
     else:
-        P = np.zeros(k.NP)
+        P = np.zeros(k.NP + nc)
+    if nc:
+        off = P.size - nc
+        P[k.ELASTIC] = 1.0
+        P[k.CLO] = off
+        P[off:] = clamp_compliance(m, _attachments(m)).ravel()
     P[k.EI] = EI
     P[k.GJ] = m.shear_modulus_MPa * 2 * m.second_moment_mm4
     P[k.EA] = m.youngs_modulus_MPa * m.area_mm2
@@ -408,15 +437,21 @@ def _cached_disc(model: FrameModel, coarse: bool) -> Discretisation:
 
 
 def _max_deflection(model, disc, store, c, phi, Q):
-    """Per needle: largest |u| over the axis nodes and over the part in the clamp (rigid with it)."""
+    """Per needle: largest |u| over the axis nodes and over the part in the clamp (rigid with it; with the elastic
+    clamp, with its section at the pin: the end node and the top, deflected with the bar)."""
     out = []
+    tops = _clamp_tops(model, disc, store, Q)
     for i in range(disc.NX.shape[0]):
         X = np.column_stack([np.full(disc.z.size, disc.NX[i, 0]), np.full(disc.z.size, disc.NX[i, 1]), disc.z])
         u = store[i, :, :3] - X
         um = float(np.sqrt((u**2).sum(1)).max())
-        for zc in (model.clamp_bottom_mm, model.free_length_mm):
-            Xc = np.array([disc.NX[i, 0], disc.NX[i, 1], zc])
-            um = max(um, float(np.linalg.norm(c + (Q - np.eye(3)) @ (Xc - disc.P0))))
+        if tops is None:
+            for zc in (model.clamp_bottom_mm, model.free_length_mm):
+                Xc = np.array([disc.NX[i, 0], disc.NX[i, 1], zc])
+                um = max(um, float(np.linalg.norm(c + (Q - np.eye(3)) @ (Xc - disc.P0))))
+        else:  # the end node (z_c) is in u; the top moves with the bar's section there
+            Xc = np.array([disc.NX[i, 0], disc.NX[i, 1], model.free_length_mm])
+            um = max(um, float(np.linalg.norm(c + (Q - np.eye(3)) @ (Xc - disc.P0) + Q @ tops[i, :3])))
         out.append(um)
     return max(out), out
 
@@ -436,6 +471,7 @@ def _post(model, disc, W, y, store, c, phi, Q, uC, it, steps) -> FrameResult:
     z = disc.z
     i0 = int(np.argmin(np.abs(z)))  # the bone surface node (a segment end unless root is rigid: z0 = 0)
     bounds = np.concatenate([[0], np.cumsum(disc.SN)])
+    tops = _clamp_tops(model, disc, store, Q)
     needles = []
     smax_all = 0.0
     mb_all = 0.0
@@ -470,10 +506,12 @@ def _post(model, disc, W, y, store, c, phi, Q, uC, it, steps) -> FrameResult:
                 bone[name] = max(bone[name], float(pr.max()))
         if model.root == "bone":
             react["tip"] = tuple((-S[0, 12:15]).tolist())
-        # the part in the clamp moves with it
+        # the part in the clamp moves with it (elastic clamp: with the bar's section at the pin)
         zt = np.array([model.clamp_bottom_mm, model.free_length_mm])[1:] if model.clamp_length_mm > 0 else np.empty(0)
         Xt = np.column_stack([np.full(zt.size, disc.NX[i, 0]), np.full(zt.size, disc.NX[i, 1]), zt])
         ut = c + (Xt - disc.P0) @ (Q - np.eye(3)).T
+        if tops is not None:
+            ut = ut + Q @ tops[i, :3]
         needles.append(NeedleResult(
             position_mm=tuple(disc.NX[i].tolist()), root_slope_rad=slope,
             root_rotation_rad=tuple(logm(R[i0]).tolist()), tip_rotation_rad=tuple(logm(R[0]).tolist()),
