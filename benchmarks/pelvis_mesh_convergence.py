@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import resource
 import subprocess
 import sys
@@ -42,21 +41,19 @@ def run_one(size: float, forces, interfaces: str) -> dict:
             "results": [{k: r[k] for k in ("force_N", *KEYS, "newton_iterations")} for r in d["results"]]}
 
 
-def richardson(h: list, f: list) -> dict:
-    """Observed order p and extrapolated value from three sizes h1 > h2 > h3 in a constant ratio r
-    (Roache's grid convergence index, safety factor 1.25, on the finest pair)."""
-    r = h[0] / h[1]
-    d12, d23 = f[0] - f[1], f[1] - f[2]
-    out = {"ratio": r, "values": f, "monotone": d12 * d23 > 0}
-    if d12 * d23 <= 0 or d23 == 0:
-        out.update(order=None, extrapolated=None, gci_fine=None,
-                   note="not monotone: no asymptotic range; the finest value and the spread are all one can say")
-        return out
-    p = math.log(abs(d12 / d23)) / math.log(r)
-    ext = f[2] + (f[2] - f[1]) / (r**p - 1)
-    out.update(order=p, extrapolated=ext, gci_fine=1.25 * abs(d23 / f[2]) / (r**p - 1),
-               finest_error_rel=(f[2] - ext) / ext)
-    return out
+def fit(h: list, f: list) -> dict:
+    """Richardson through the three sizes (models.needle.convergence.richardson), as JSON; the GCI (Roache,
+    safety factor 1.25) on the finest pair. Not monotone: no asymptotic range, say so."""
+    from needletissue.errors import InputError
+    from needletissue.models.needle.convergence import richardson
+
+    try:
+        r = richardson(*f, ratio=h[0] / h[1])
+    except InputError as exc:
+        return {"values": f, "order": None, "extrapolated": None, "note": str(exc)}
+    return {"values": f, "ratio": r.ratio, "order": r.order, "extrapolated": r.extrapolated,
+            "finest_error_rel": (f[2] - r.extrapolated) / r.extrapolated,
+            "gci_fine": 1.25 * abs((f[2] - f[1]) / f[2]) / (r.ratio**r.order - 1)}
 
 
 def main():
@@ -65,6 +62,7 @@ def main():
                     help="three tissue element sizes at the needles, mm, in a constant ratio (coarse first)")
     ap.add_argument("--interfaces", default="bonded", help="bonded or paper (fe pelvis --interfaces)")
     ap.add_argument("--out", default="benchmarks/pelvis_convergence.json", help="results JSON")
+    ap.add_argument("--refit", action="store_true", help="only redo the fits from the runs stored in --out")
     ap.add_argument("--one", type=float, help=argparse.SUPPRESS)  # internal: run one size, print JSON
     a = ap.parse_args()
     if a.one is not None:
@@ -73,8 +71,10 @@ def main():
     h = sorted(a.sizes, reverse=True)
     if abs(h[0] / h[1] - h[1] / h[2]) > 1e-3 * h[0] / h[1]:
         ap.error(f"--sizes must be in a constant ratio, got {h}")
-    runs = []
-    for size in h:
+    runs = json.loads(Path(a.out).read_text())["runs"] if a.refit else []
+    if a.refit:
+        h = [r["mesh_size_mm"] for r in runs]
+    for size in h[len(runs):]:
         p = subprocess.run([sys.executable, __file__, "--one", str(size), "--interfaces", a.interfaces],
                            capture_output=True, text=True)
         if p.returncode:
@@ -87,7 +87,7 @@ def main():
     study = {"interfaces": a.interfaces, "sizes_mm": h, "runs": runs, "richardson": {}}
     for i, F in enumerate(FORCES):
         for key in KEYS:
-            study["richardson"][f"{key}@{F:g}N"] = richardson(h, [r["results"][i][key] for r in runs])
+            study["richardson"][f"{key}@{F:g}N"] = fit(h, [r["results"][i][key] for r in runs])
     Path(a.out).write_text(json.dumps(study, indent=1) + "\n")
     for name, v in study["richardson"].items():
         if v["order"] is None:
