@@ -1,11 +1,14 @@
 """Newton's method of fem.solve: the tangent is the derivative of the residual (checked by finite
-differences, every material law of the needle model; docs/bench.md, "Newton")."""
+differences, every material law of the needle model), and the modified-Newton substeps give the
+same answer with fewer tangent assemblies and factorisations (docs/bench.md, "Newton")."""
 
 import numpy as np
 import pytest
 from felupe.tools._newton import fun_items, jac_items, update
 
-from needletissue.fem import FEModel, Fixed, SurfaceForce, TaggedMesh, solve
+from needletissue.fem import FEModel, Fixed, SurfaceForce, TaggedMesh, linsolve, solve
+
+pardiso = pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
 
 
 def directional_error(body, x, v, h):
@@ -45,3 +48,43 @@ def test_tangent_is_the_derivative_of_the_residual(loaded, region):
     rm = fun_items([body], update(x, -1e-3 * v))
     fun_items([body], x)
     assert np.linalg.norm((rp - rm) / 2e-3 - 1.001 * Kv) / np.linalg.norm(Kv) > 1e-4
+
+
+@pardiso
+def test_pardiso_resolve_uses_the_kept_factor():
+    import scipy.sparse as sp
+
+    for reuse in (True, False):
+        s = linsolve.TimedSolver("pardiso", linsolve._Pardiso(reuse))
+        assert s.can_resolve
+        A = (sp.diags([4.0] * 6) + sp.diags([1.0] * 5, 1) + sp.diags([1.0] * 5, -1)).tocsr()
+        assert s.resolve(np.ones(6)) is None  # nothing kept yet
+        s.keep_factor(True)
+        s(A, np.ones(6))
+        b = np.arange(6.0)
+        np.testing.assert_allclose(A @ s.resolve(b), b, atol=1e-12)
+        np.testing.assert_allclose(A @ s.resolve(2 * b), 2 * b, atol=1e-12)  # still kept
+        s.release()
+        assert s.resolve(b) is None
+        s.close()
+
+
+@pardiso
+def test_substeps_same_answer_with_fewer_tangents():
+    """A stiff cantilever (needle material) in large deflection: Newton with modified-Newton substeps
+    reaches the field of plain Newton (same residual tolerance) with fewer tangent assemblies and
+    factorisations; the substeps are counted."""
+    mesh = TaggedMesh.box((30, 4, 4), (16, 3, 3), origin=(0, -2, -2), region="needle")
+    out = {}
+    for substeps in (0, None):
+        model = FEModel(mesh, {"needle": "needle"}, order=2)
+        out[substeps] = solve(model, [Fixed("xmin"), SurfaceForce("xmax", (0, 0, 400.0))], [0.5, 1.0],
+                              solver="pardiso", progress=False, results=False, substeps=substeps)
+    assert np.abs(out[0][-1].displacement).max() > 1.0  # large deflection: several iterations per step
+    for plain, sub in zip(out[0], out[None]):
+        ref = plain.displacement
+        np.testing.assert_allclose(sub.displacement, ref, rtol=0, atol=1e-7 * np.abs(ref).max())
+        assert max(n[-1] for n in sub.residual_norms) < 1e-8
+    assert out[0][-1].newton_substeps == 0
+    assert out[None][-1].newton_substeps > 0
+    assert out[None][-1].newton_iterations < out[0][-1].newton_iterations
