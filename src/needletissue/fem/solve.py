@@ -29,6 +29,7 @@ def _substep_plugin(fem, linear, dof1, nmax: int):
 
     class _Substeps(fem.Plugin):
         taken = 0
+        enabled = True
 
         def _correction(self, like, f):
             c = linear.resolve(-f[dof1])
@@ -39,6 +40,9 @@ def _substep_plugin(fem, linear, dof1, nmax: int):
             return full, float(np.linalg.norm(full.reshape(-1, 3), axis=1).max())
 
         def after_linear_solve(self, context, st):
+            if not self.enabled:
+                linear.release()
+                return
             try:
                 dx = st.dx
                 if st.updated:  # another plugin has updated already
@@ -222,6 +226,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                    max |u| and each is <= SUBSTEP_CONTRACTION of the previous one, until |r| < tol.
                    Only with a solver that keeps its factor (Pardiso); the convergence test is
                    unchanged, so the answer is the same to the tolerance (docs/bench.md, "Newton").
+                   An increment that fails after substeps is tried once more without them before
+                   it is halved.
 
     Reactions: a dof fixed by several conditions (e.g. on two fixed surfaces that share an edge)
     counts once, for the first condition in `bcs` that constrains it, so the reactions of all
@@ -317,6 +323,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                     why = f"{type(exc).__name__}: {exc}"
                 newton_s += time.perf_counter() - ts
                 if ok:
+                    if sub is not None:
+                        sub.enabled = True
                     field.link(res.x)
                     last_fun = res.fun  # residual at the converged state: reactions, no re-assembly
                     last_du = [f.values - v for f, v in zip(field.fields, saved)]
@@ -332,6 +340,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                     bar.update(lam=lam)
                     continue
                 # failed: restore the last converged state and halve the increment
+                retry = sub is not None and sub.enabled and sub.taken > taken0
                 if sub is not None:
                     sub.taken = taken0
                 for f, v in zip(field.fields, saved):
@@ -339,6 +348,10 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 for b, c in zip(stateful, checkpoints):
                     if c is not None:
                         b.restore(c)
+                if retry:  # substeps can lead Newton astray: the same increment once more without them
+                    sub.enabled = False
+                    bar.update(text=f"retry dλ={dl:.3g} at λ={lam:.4g} without substeps")
+                    continue
                 ncut += 1
                 last_du = None  # the path turned: no extrapolation from a failed direction
                 step = dl / 2
