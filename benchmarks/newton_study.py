@@ -76,6 +76,7 @@ def tangent(a):
 def trace(a):
     import felupe as fem
 
+    from needletissue.errors import ConvergenceError
     from needletissue.fem import solve
     from needletissue.models.needle.model import rigid_fit
 
@@ -107,6 +108,9 @@ def trace(a):
     try:
         res = solve(model, bcs, load_factors=[f / max(FORCES) for f in FORCES], progress=False, results=False,
                     substeps=0 if a.armijo else a.substeps, solver=a.solver, linesearch=a.armijo or None)
+    except ConvergenceError as exc:  # e.g. --armijo
+        print(f"failed after {time.process_time() - c0:.1f} s CPU: {exc}")
+        return
     finally:
         fem.newtonraphson, fem.LinesearchPlugin = newton, search
     cpu = time.process_time() - c0
