@@ -88,8 +88,9 @@ def table(runs: list[dict]) -> str:
             continue
         med = {k: float(np.median([r[k] for r in rs])) for k in ("wall_s", "cpu_s", "linear_solve_s")}
         mem = max(r["peak_rss_MB"] for r in rs)
+        subs = f" + {rs[0]['newton_substeps']} substeps" if rs[0].get("newton_substeps") else ""
         rows.append(f"| this machine, {v} (median of {len(rs)}) | {med['wall_s']:.1f} s | {med['cpu_s']:.1f} s | "
-                    f"{med['linear_solve_s']:.1f} s | {rs[0]['newton_iterations']} | {mem:.0f} MB |")
+                    f"{med['linear_solve_s']:.1f} s | {rs[0]['newton_iterations']}{subs} | {mem:.0f} MB |")
     return "\n".join(rows)
 
 
