@@ -5,7 +5,9 @@ settings, back to back, each run in its own process (honest peak RSS).
     nice python benchmarks/bench_fe_needle.py [--repeat 2] [--write-docs]
 
 The mesh is made once (gmsh, deterministic) and every run solves it from scratch. Variants:
-- previous: Pardiso analysed at every Newton iteration (linsolve.REUSE_ANALYSIS = False);
+- previous: Pardiso analysed at every Newton iteration (linsolve.REUSE_ANALYSIS = False), plain Newton
+  (solve(substeps=0));
+- current-nosub: this version with plain Newton (substeps=0): the lever of the modified-Newton substeps;
 - current: the defaults of this version;
 - current-mkl1: the same with MKL_NUM_THREADS=1 (Pardiso on one thread; FEBio was faster on one).
 Both must give the same displacement field (max |du| / max |u| is printed; <= 1e-6 required).
@@ -29,7 +31,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-VARIANTS = ("previous", "current", "current-mkl1")
+VARIANTS = ("previous", "current-nosub", "current", "current-mkl1")
 FORCES = (100.0, 200.0, 300.0)
 ISSUE_TABLE = [  # issue 18, measured side by side on the shared 2-core machine
     ("needletissue (issue 18)", 43.3, 33.8, 18, 824),
@@ -56,12 +58,14 @@ def run_one(variant: str, mesh_path: str, u_out: str) -> dict:
     model = FEModel(mesh, {r: MATERIALS[r] for r in mesh.regions}, order=2, formulation="mixed")
     fmax = max(FORCES)
     bcs = [Fixed("bone_fixed"), Fixed("tissue_far"), SurfaceForce("gripper", total=(0.0, fmax, 0.0))]
-    res = solve(model, bcs, load_factors=[f / fmax for f in FORCES], progress=False)
+    plain = variant in ("previous", "current-nosub")
+    res = solve(model, bcs, load_factors=[f / fmax for f in FORCES], progress=False, substeps=0 if plain else None)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     np.save(u_out, res[-1].displacement)
     last = res[-1]
     return {"variant": variant, "wall_s": wall, "cpu_s": cpu, "linear_solve_s": last.timing_s["linear_solve"],
             "newton_s": last.timing_s["newton"], "newton_iterations": last.newton_iterations, "steps": last.steps,
+            "newton_substeps": last.newton_substeps,
             "free_dofs": int(model.ndof), "residual_norms": last.residual_norms,
             "iterations_per_force": [r.newton_iterations for r in res],
             "peak_rss_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
@@ -84,8 +88,9 @@ def table(runs: list[dict]) -> str:
             continue
         med = {k: float(np.median([r[k] for r in rs])) for k in ("wall_s", "cpu_s", "linear_solve_s")}
         mem = max(r["peak_rss_MB"] for r in rs)
+        subs = f" + {rs[0]['newton_substeps']} substeps" if rs[0].get("newton_substeps") else ""
         rows.append(f"| this machine, {v} (median of {len(rs)}) | {med['wall_s']:.1f} s | {med['cpu_s']:.1f} s | "
-                    f"{med['linear_solve_s']:.1f} s | {rs[0]['newton_iterations']} | {mem:.0f} MB |")
+                    f"{med['linear_solve_s']:.1f} s | {rs[0]['newton_iterations']}{subs} | {mem:.0f} MB |")
     return "\n".join(rows)
 
 

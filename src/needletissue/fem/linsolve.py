@@ -57,6 +57,34 @@ class TimedSolver:
         if close is not None:
             close()
 
+    @property
+    def can_resolve(self) -> bool:
+        """Whether the backend can keep its last factorisation for `resolve` (Pardiso with reuse)."""
+        return bool(getattr(self._fun, "can_keep", False))
+
+    def keep_factor(self, keep: bool = True):
+        """Keep the next factorisations until `release` (for `resolve`); no-op without support."""
+        if self.can_resolve:
+            self._fun.keep = keep
+
+    def resolve(self, b):
+        """x = A^-1 b with the factor of the last call's A (one back-substitution), or None when no
+        factor is kept. The factor stays kept."""
+        fun = getattr(self._fun, "resolve", None)
+        if fun is None:
+            return None
+        t = time.perf_counter()
+        try:
+            return fun(np.asarray(b, float))
+        finally:
+            self.seconds += time.perf_counter() - t
+
+    def release(self):
+        """Free a kept factor (the analysis stays)."""
+        release = getattr(self._fun, "release", None)
+        if release is not None:
+            release()
+
     def __call__(self, A, b):
         if not np.all(np.isfinite(b)):  # e.g. a contact item's NaN residual after interpenetration
             raise np.linalg.LinAlgError(f"{self.name}: non-finite residual")
@@ -131,6 +159,9 @@ class _Pardiso:
     factor held during the next assembly) while the analysis stays. The needle model (37,677 dofs,
     tet10): analysis 0.36 s, factorisation 1.10 s, solve 0.08 s of CPU per call; the solution
     equals a fresh phase 13's to round-off (docs/bench.md).
+
+    With `keep` set (TimedSolver.keep_factor), the factor of the last call stays for `resolve(b)`
+    (phase 33 only: modified-Newton substeps in fem.solve) until `release()` or the next call.
     """
 
     def __init__(self, reuse: bool = True):
@@ -142,7 +173,11 @@ class _Pardiso:
         self.solvers = {-2: PyPardisoSolver(mtype=-2), 11: PyPardisoSolver(mtype=11)}
         self.pattern = {}  # mtype -> (indptr, indices) of the analysed matrix
         self.analyses = 0
+        self.keep = False  # keep the factor after a call, for resolve(), until release()
+        self.kept = None   # (PyPardisoSolver, matrix) whose factor is kept
         weakref.finalize(self, _Pardiso._release, self.solvers)
+
+    can_keep = True
 
     @staticmethod
     def _release(solvers):
@@ -152,6 +187,30 @@ class _Pardiso:
     def close(self):
         self._release(self.solvers)
         self.pattern.clear()
+        self.kept = None
+
+    def release(self):
+        """Free the kept factor (phase 0), keep the analysis."""
+        if self.kept is not None:
+            import scipy.sparse as sp
+
+            ps = self.kept[0]
+            self.kept = None
+            ps.set_phase(0)
+            ps._call_pardiso(sp.csr_matrix((0, 0)), np.zeros(0))
+            ps.set_phase(13)
+
+    def resolve(self, b):
+        """Back-substitution (phase 33) with the kept factor; None when none is kept."""
+        if self.kept is None:
+            return None
+        ps, M = self.kept
+        b = ps._check_b(M, b)
+        ps.set_phase(33)
+        try:
+            return ps._call_pardiso(M, b)
+        finally:
+            ps.set_phase(13)
 
     def __call__(self, A, b):
         import scipy.sparse as sp
@@ -164,11 +223,18 @@ class _Pardiso:
         ps = self.solvers[mtype]
         ps._check_A(M)  # sorts the indices, rejects empty rows, sets CSR input (iparm 12)
         b = ps._check_b(M, np.asarray(b, float))
+        self.release()
         if not self.reuse:
+            ok = False
             try:
-                return ps.solve(M, b)
+                x = ps.solve(M, b)
+                ok = True
+                return x
             finally:
-                ps.free_memory(everything=True)
+                if ok and self.keep:
+                    self.kept = (ps, M)
+                else:
+                    ps.free_memory(everything=True)
         known = self.pattern.get(mtype)
         if known is None or not (np.array_equal(known[0], M.indptr) and np.array_equal(known[1], M.indices)):
             if known is not None:
@@ -178,18 +244,25 @@ class _Pardiso:
             ps._call_pardiso(M, b)
             self.pattern[mtype] = (M.indptr.copy(), M.indices.copy())
             self.analyses += 1
+        ok = False
         try:
             ps.set_phase(22)
             ps._call_pardiso(M, b)
             ps.set_phase(33)
-            return ps._call_pardiso(M, b)
+            x = ps._call_pardiso(M, b)
+            ok = True
+            return x
         except Exception:
             self.pattern.pop(mtype, None)  # analyse afresh after a failure
             raise
         finally:
-            ps.set_phase(0)  # release the factor, keep the analysis
-            ps._call_pardiso(sp.csr_matrix((0, 0)), np.zeros(0))
-            ps.set_phase(13)
+            if ok and self.keep:  # the factor stays for resolve() until release()
+                self.kept = (ps, M)
+                ps.set_phase(13)
+            else:
+                ps.set_phase(0)  # release the factor, keep the analysis
+                ps._call_pardiso(sp.csr_matrix((0, 0)), np.zeros(0))
+                ps.set_phase(13)
 
 
 def single_threaded_openblas():

@@ -22,6 +22,8 @@ class FEResult:
     reaction_forces           : {surface: (3,) N} force the support/prescribed surface exerts on the
                                 body (sum over the surface's nodes), for Fixed and PrescribedDisplacement
     steps, newton_iterations  : converged sub-steps and Newton iterations since the start of the solve
+    newton_substeps           : modified-Newton substeps (corrections with an iteration's factorisation,
+                                no tangent assembly) since the start of the solve (solve(substeps=...))
     cutbacks                  : failed attempts that were halved
     wall_time_s               : since the start of the solve
     cell_data                 : per cell: von_mises_MPa (Cauchy), principal_stretches (3, ascending),
@@ -51,6 +53,7 @@ class FEResult:
     cell_data: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
     materials: dict[str, str] = field(default_factory=dict)
     drucker_unstable_fraction: dict[str, float] = field(default_factory=dict)
+    newton_substeps: int = 0  # modified-Newton substeps (same factorisation) since the start of the solve
 
     def check_drucker(self, materials: dict[str, str]) -> "FEResult":
         """Flag cells beyond their material's Drucker-stable range (materials.stability: the law's
@@ -100,6 +103,7 @@ class FEResult:
             "reaction_forces_N": {k: np.asarray(v).tolist() for k, v in self.reaction_forces.items()},
             "steps": self.steps,
             "newton_iterations": self.newton_iterations,
+            "newton_substeps": self.newton_substeps,
             "cutbacks": self.cutbacks,
             "wall_time_s": self.wall_time_s,
             "linear_solver": self.linear_solver,

@@ -13,6 +13,64 @@ from needletissue.fem.model import Fixed, FEModel, PrescribedDisplacement, Surfa
 from needletissue.fem.result import FEResult, green_lagrange, principal_stretches, von_mises
 
 
+# Modified-Newton substeps (solve(substeps=...), docs/bench.md "Newton"). The needle model's Newton
+# iterations converge slowly, not quadratically, because stiff parts (clamp, needles) rotate: a
+# linearised rotation stretches them, and their large spurious forces drive the soft modes. The tangent is
+# consistent (tests/fem/test_newton.py), so further corrections with the same factorisation converge
+# too, at a residual and a back-substitution each instead of a tangent assembly and a factorisation.
+SUBSTEPS = 6
+SUBSTEP_START = 1e-2        # first substep only if its correction is <= this x max |u|
+SUBSTEP_CONTRACTION = 0.5   # each further one only if <= this x the previous correction
+
+
+def _substep_plugin(fem, linear, dof1, nmax: int):
+    """A FElupe plugin: after the linear solve, update x1 = x + dx and add up to `nmax`
+    modified-Newton corrections -K^-1 r with the factor `linear` kept; counts them in `.taken`."""
+
+    class _Substeps(fem.Plugin):
+        taken = 0
+        enabled = True
+
+        def _correction(self, like, f):
+            c = linear.resolve(-f[dof1])
+            if c is None or not np.all(np.isfinite(c)):
+                return None, np.inf
+            full = np.zeros_like(like)
+            full[dof1] = c
+            return full, float(np.linalg.norm(full.reshape(-1, 3), axis=1).max())
+
+        def after_linear_solve(self, context, st):
+            if not self.enabled:
+                linear.release()
+                return
+            try:
+                dx = st.dx
+                if st.updated:  # another plugin has updated already
+                    x, f = st.x, st.fun
+                else:
+                    x = context.update(st.x, dx)
+                    f = context.fun(x)
+                umax = float(np.linalg.norm(x[0].values, axis=1).max())
+                limit = SUBSTEP_START * umax
+                for _ in range(nmax):
+                    _, fnorm, ok = context.check(dx, x, f)
+                    if ok or not np.isfinite(fnorm) or not np.all(np.isfinite(f)):
+                        break
+                    c, cmax = self._correction(dx, f)
+                    if not cmax <= limit:
+                        break
+                    x = context.update(x, c)
+                    f = context.fun(x)  # the accepted trial is evaluated last
+                    dx = dx + c
+                    limit = SUBSTEP_CONTRACTION * cmax
+                    self.taken += 1
+                st.x, st.fun, st.dx, st.updated = x, f, dx, True
+            finally:
+                linear.release()  # no factor held during the next tangent assembly
+
+    return _Substeps()
+
+
 class _Loads:
     """FElupe boundaries and point loads for the BCs, updated to a load factor."""
 
@@ -137,7 +195,7 @@ class _Progress:
 def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=(), progress: bool = True,
           initial_step: float | None = None, min_step: float = 1e-3, max_step: float | None = None,
           tol: float = 1e-8, maxiter: int | None = None, results: bool = True, predictor: bool = True,
-          linesearch: bool | None = None) -> list[FEResult]:
+          linesearch: bool | None = None, substeps: int | None = None) -> list[FEResult]:
     """Solve the model quasi-statically, one FEResult per requested load factor.
 
     bcs          : Fixed / PrescribedDisplacement / SurfaceForce; values and forces scale with the
@@ -161,6 +219,15 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                    halve the step while det F <= 0 or the residual is non-finite, e.g. a contact
                    item's NaN for a step that passes a surface through another). Default: on when
                    extra `items` are given, off otherwise (bonded runs stay plain Newton).
+    substeps     : modified-Newton substeps per Newton iteration (default SUBSTEPS without extra
+                   `items` and line search, else 0): after the update x + dx, further corrections
+                   -K^-1 r(x) with the same factorisation of K (one residual and one back-substitution
+                   each, no tangent assembly, no factorisation) while the first is <= SUBSTEP_START
+                   max |u| and each is <= SUBSTEP_CONTRACTION of the previous one, until |r| < tol.
+                   Only with a solver that keeps its factor (Pardiso); the convergence test is
+                   unchanged, so the answer is the same to the tolerance (docs/bench.md, "Newton").
+                   An increment that fails after substeps is tried once more without them before
+                   it is halved.
 
     Reactions: a dof fixed by several conditions (e.g. on two fixed surfaces that share an edge)
     counts once, for the first condition in `bcs` that constrains it, so the reactions of all
@@ -199,7 +266,19 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
             bar.update(text=f"step {nsteps + 1} (dλ={dl:.3g}) Newton {st.iteration + 1}: |r| = {st.fnorm:.2e}")
 
     plugins = [_Report()]
-    if items if linesearch is None else linesearch:
+    searching = bool(items) if linesearch is None else bool(linesearch)
+    if substeps is None:
+        substeps = 0 if items or searching else SUBSTEPS
+    substeps = int(check_number("substeps", substeps, ge=0))
+    if substeps and searching:
+        raise InputError("substeps", "modified-Newton substeps and the line search exclude each other: "
+                                     "give substeps=0 or linesearch=False")
+    sub = None
+    if substeps and linear.can_resolve:
+        sub = _substep_plugin(fem, linear, loads.dof1, substeps)
+        linear.keep_factor(True)
+        plugins.insert(0, sub)
+    if searching:
         # no Armijo test on |r|: a barrier's residual is no merit function (measured: it stalled the
         # needle model at load factor 0.005); reject only inverted and non-finite trials
         plugins.insert(0, fem.LinesearchPlugin(admissible=True, residual=False, max_halvings=10,
@@ -225,6 +304,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 stateful = [*bodies, *items]  # e.g. a frictional contact item's history
                 checkpoints = [b.checkpoint() if hasattr(b, "checkpoint") else None for b in stateful]
                 ext0 = loads.apply(model, lam + dl)
+                taken0 = sub.taken if sub is not None else 0  # substeps count like iterations: converged ones
                 ok, res, why = False, None, ""
                 ts = time.perf_counter()
                 try:
@@ -243,6 +323,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                     why = f"{type(exc).__name__}: {exc}"
                 newton_s += time.perf_counter() - ts
                 if ok:
+                    if sub is not None:
+                        sub.enabled = True
                     field.link(res.x)
                     last_fun = res.fun  # residual at the converged state: reactions, no re-assembly
                     last_du = [f.values - v for f, v in zip(field.fields, saved)]
@@ -258,11 +340,18 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                     bar.update(lam=lam)
                     continue
                 # failed: restore the last converged state and halve the increment
+                retry = sub is not None and sub.enabled and sub.taken > taken0
+                if sub is not None:
+                    sub.taken = taken0
                 for f, v in zip(field.fields, saved):
                     f.values = v
                 for b, c in zip(stateful, checkpoints):
                     if c is not None:
                         b.restore(c)
+                if retry:  # substeps can lead Newton astray: the same increment once more without them
+                    sub.enabled = False
+                    bar.update(text=f"retry dλ={dl:.3g} at λ={lam:.4g} without substeps")
+                    continue
                 ncut += 1
                 last_du = None  # the path turned: no extrapolation from a failed direction
                 step = dl / 2
@@ -273,14 +362,16 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                         f"no convergence beyond load factor {lam:.6g} (target {target:.6g}): increment "
                         f"{dl:.3g} failed and halving it would go below min_step={min_step:g} "
                         f"({nsteps} steps, {nit} Newton iterations, {ncut} cut-backs; last: {why or 'max iterations'})")
+            nsub = sub.taken if sub is not None else 0
             if results:
                 out.append(_result(model, loads, last_fun, target, nsteps, nit, ncut, time.perf_counter() - t0,
-                                   linear, newton_s, norms))
+                                   linear, newton_s, norms, nsub))
             else:
                 out.append(FEResult(target, field[0].values.copy(), {}, {}, nsteps, nit, time.perf_counter() - t0,
                                     model.mesh.stats(), ncut, linear.name,
                                     {"newton": newton_s, "linear_solve": linear.seconds,
-                                     "assembly_and_update": newton_s - linear.seconds}, norms))
+                                     "assembly_and_update": newton_s - linear.seconds}, norms,
+                                    newton_substeps=nsub))
     return out
 
 
@@ -290,7 +381,7 @@ def _min_det_f(body) -> float:
     return float(np.min(np.linalg.det(np.moveaxis(F, (0, 1), (-2, -1)))))
 
 
-def _result(model, loads, fvec, lam, nsteps, nit, ncut, wall, linear, newton_s, norms) -> FEResult:
+def _result(model, loads, fvec, lam, nsteps, nit, ncut, wall, linear, newton_s, norms, nsub=0) -> FEResult:
     mesh = model.mesh
     u = model.field[0].values.copy()
     umag = np.linalg.norm(u, axis=1)
@@ -318,7 +409,8 @@ def _result(model, loads, fvec, lam, nsteps, nit, ncut, wall, linear, newton_s, 
         steps=nsteps, newton_iterations=nit, wall_time_s=wall, mesh_stats=mesh.stats(), cutbacks=ncut,
         linear_solver=linear.name,
         timing_s={"newton": newton_s, "linear_solve": linear.seconds, "assembly_and_update": newton_s - linear.seconds},
-        residual_norms=[list(n) for n in norms], region_tags=tags, points=mesh.points, cells=mesh.cells,
+        residual_norms=[list(n) for n in norms], newton_substeps=nsub, region_tags=tags, points=mesh.points,
+        cells=mesh.cells,
         cell_data={"von_mises_MPa": vm, "principal_stretches": stretch, "cauchy_stress_MPa": cauchy,
                    "green_lagrange_strain": strain, "region": mesh.region_of_cells().astype(np.int32)},
     ).check_drucker({r: m.name for r, m in model.materials.items()})
