@@ -7,7 +7,7 @@ defaults), so the three runs are one refinement family. Tissue is assigned per t
 geometric error, not only the discretisation of one fixed geometry.
 
     PYTHONPATH=src nice python benchmarks/pelvis_mesh_convergence.py [--sizes 4 3 2.25] \
-        [--out benchmarks/pelvis_convergence.json]
+        [--out src/needletissue/data/pelvis_convergence.json]
 
 Each size runs in its own process (peak memory per size, a crash loses one size only). Needs ../shared/data.
 """
@@ -61,7 +61,8 @@ def main():
     ap.add_argument("--sizes", type=float, nargs=3, default=[4.0, 3.0, 2.25],
                     help="three tissue element sizes at the needles, mm, in a constant ratio (coarse first)")
     ap.add_argument("--interfaces", default="bonded", help="bonded or paper (fe pelvis --interfaces)")
-    ap.add_argument("--out", default="benchmarks/pelvis_convergence.json", help="results JSON")
+    ap.add_argument("--out", default="src/needletissue/data/pelvis_convergence.json",
+                    help="results JSON (package data: reproduce compares the frame model with its limits)")
     ap.add_argument("--refit", action="store_true", help="only redo the fits from the runs stored in --out")
     ap.add_argument("--one", type=float, help=argparse.SUPPRESS)  # internal: run one size, print JSON
     a = ap.parse_args()

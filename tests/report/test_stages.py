@@ -32,3 +32,45 @@ def test_ritz_and_materials_stages(tmp_path):
             assert (out / fig).stat().st_size > 1000
     html = (out / "report.html").read_text(encoding="utf-8")
     assert html.count("data:image/png;base64,") >= 2
+
+
+def test_mesh_converged_limits_of_the_anatomical_model():
+    """The stored convergence study (benchmarks/pelvis_mesh_convergence.py): a coarser mesh is stiffer, so the
+    max needle deformation grows as the mesh is refined and its Richardson limit lies above the finest level,
+    at an observed order between 1 and 3 (tetra10, tissue boundaries by centroid); the limits apply only to a
+    run that is one of the study's levels."""
+    import json
+    from importlib.resources import files
+
+    from needletissue.report.stages import mesh_converged_limits
+
+    study = json.loads(files("needletissue").joinpath("data/pelvis_convergence.json").read_text())
+    lim = mesh_converged_limits("ct", None, None, 4.0)
+    assert sorted(lim) == [100.0, 200.0, 300.0]
+    for i, F in enumerate(sorted(lim)):
+        levels = [r["results"][i]["max_needle_deformation_mm"] for r in study["runs"]]
+        assert study["runs"][0]["results"][i]["force_N"] == F
+        assert levels[0] < levels[1] < levels[2] < lim[F]["limit_mm"] < 1.1 * levels[2]
+        assert 1.0 < lim[F]["order"] < 3.0
+    for args in (("ct", "my_ct.nii.gz", None, 4.0), ("ssm", None, None, 4.0), ("ct", None, None, 3.5)):
+        assert mesh_converged_limits(*args) is None
+
+
+def test_frame_beside_the_pelvis_against_the_mesh_converged_fe():
+    """With the limits, one more row per force: |frame - FE limit| with the same goal as the demo-mesh row."""
+    from needletissue.report.stages import _frame_beside_pelvis
+    from test_reconcile import _pelvis
+
+    data = _pelvis()
+    lim = {F: {"limit_mm": 1.05 * r["max_needle_deformation_mm"], "order": 1.8, "sizes_mm": [4.0, 3.0, 2.25]}
+           for F, r in zip((100.0, 200.0, 300.0), data["results"])}
+    comps = []
+    out = _frame_beside_pelvis(data, comps, lim)
+    conv = [c for c in comps if "mesh-converged" in c.quantity]
+    assert len(conv) == 3 and len(comps) == 6
+    for c, o in zip(conv, out):
+        assert c.ours == pytest.approx(abs(o["frame_max_needle_deflection_mm"] - o["fe_mesh_converged_mm"]), rel=1e-12)
+        assert o["fe_mesh_converged_mm"] == pytest.approx(1.05 * o["fe_max_needle_deformation_mm"], rel=1e-12)
+    comps = []
+    _frame_beside_pelvis(data, comps)
+    assert not [c for c in comps if "mesh-converged" in c.quantity]

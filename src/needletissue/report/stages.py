@@ -303,7 +303,28 @@ def _frame_beside_fe(c, res, comps) -> list[dict]:
     return out
 
 
-def _frame_beside_pelvis(data: dict, comps) -> list[dict]:
+def mesh_converged_limits(source: str, ct, labels, mesh_size_mm: float) -> dict | None:
+    """{force N: Richardson limit of the max needle deformation, mm} from the stored mesh-convergence study of
+    the anatomical model (package data pelvis_convergence.json, benchmarks/pelvis_mesh_convergence.py), when
+    this run is one of its levels: `fe pelvis` defaults (bundled CT and labels) at one of its sizes; else None."""
+    import json
+    from importlib.resources import files
+
+    if source != "ct" or ct or labels:
+        return None
+    study = json.loads(files("needletissue").joinpath("data/pelvis_convergence.json").read_text())
+    if not any(abs(mesh_size_mm - h) < 1e-9 for h in study["sizes_mm"]):
+        return None
+    out = {}
+    for key, fit in study["richardson"].items():
+        name, force = key.split("@")
+        if name == "max_needle_deformation_mm" and fit["extrapolated"] is not None:
+            out[float(force.rstrip("N"))] = {"limit_mm": fit["extrapolated"], "order": fit["order"],
+                                             "sizes_mm": study["sizes_mm"]}
+    return out
+
+
+def _frame_beside_pelvis(data: dict, comps, limits: dict | None = None) -> list[dict]:
     """The frame model fed with what the anatomical run measured along its pins: exposed length (bone
     entry to the needle end), pin spacing across the axis, insertion depth, clamp height, the two
     needles' mean tissue layers, and the force in the pins' frame (z out of the bone along the pins,
@@ -330,8 +351,19 @@ def _frame_beside_pelvis(data: dict, comps) -> list[dict]:
             abs(fr.max_needle_deflection_mm - fe), "mm", None,
             f"frame {fr.max_needle_deflection_mm:.3f} mm, FE {fe:.3f} mm (demo mesh); frame fed with the "
             f"measured lengths and the two needles' mean layers", limit=goal))
+        lim = (limits or {}).get(float(r["force_N"]))
+        if lim is not None:
+            fe0 = lim["limit_mm"]
+            comps.append(Comparison(
+                f"|frame model - mesh-converged FE|, max needle deflection at {r['force_N']:g} N (anatomical model, "
+                f"as above; FE extrapolated to zero element size)", abs(fr.max_needle_deflection_mm - fe0), "mm", None,
+                f"frame {fr.max_needle_deflection_mm:.3f} mm, FE limit {fe0:.3f} mm (Richardson from the same model "
+                f"at {' / '.join(f'{h:g}' for h in lim['sizes_mm'])} mm, observed order {lim['order']:.2f}; "
+                f"pelvis_convergence.json); the demo mesh's FE is {100 * (fe / fe0 - 1):+.1f} % from that limit",
+                limit=max(0.432, 0.024 * fe0)))
         out.append({"force_N": r["force_N"], "frame_max_needle_deflection_mm": fr.max_needle_deflection_mm,
                     "fe_max_needle_deformation_mm": fe, "goal_mm": goal, "force_in_pin_frame_N": list(fr.force_N),
+                    "fe_mesh_converged_mm": None if lim is None else lim["limit_mm"],
                     "frame_model": {"spacing_mm": spacing, "free_length_mm": free,
                                     "layers_mm": [la.thickness_mm for la in layers]},
                     "frame_warnings": list(fr.warnings)})
@@ -409,7 +441,7 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
         comps.append(Comparison(f"Soft tissue along {t['needle']}", t["total_mm"], "mm",
                                 "soft_tissue_thickness_mean_mm", "paper: mean of 10 patients (+- 5.43 mm); "
                                 "agrees = within one patient SD", tolerance_percent=100 * sd))
-    data["frame"] = _frame_beside_pelvis(data, comps)
+    data["frame"] = _frame_beside_pelvis(data, comps, mesh_converged_limits(c.source, ct, labels, c.mesh_size_mm))
     base, top = data["site"]["needle_axes_mm"][0]
     forces = [r.force_N for r in res.results]
     views = _view(d / "pelvis_3d.html", "Anatomical model, deformed at each force (adipose and body wall "
