@@ -518,8 +518,9 @@ def _reason(c, rec: Reconciliation, pelvis: dict | None) -> str:
             text += (f"; an elastic-plastic pin carrying the whole force yields and gives {top.increase_percent:+.0f} %: "
                      "the paper's +250.08 % is not what an elastic model gives")
         for x in match:
-            text += (f"; that pin gives {x.increase_percent:+.2f} % from {x.forces_N[0]:.1f} to {x.forces_N[1]:.1f} N "
-                     "(elastic below, yielding above)")
+            text += (f"; the elastic-plastic pin of {x.setup.split(' (plastic=True)')[0]} gives "
+                     f"{x.increase_percent:+.2f} % from {x.forces_N[0]:.1f} to {x.forces_N[1]:.1f} N (elastic below, "
+                     "yielding above)")
         return text + "."
     if key == "soft_tissue_thickness_mean_mm" and pelvis:
         t = next((t for t in pelvis["thickness"] if c.quantity.endswith(t["needle"])), None)
