@@ -23,6 +23,11 @@ def test_solvers_agree():
 def test_auto_choice():
     assert linsolve.choose("auto", 1_000) == ("pardiso" if linsolve.has_pardiso() else "scipy")
     assert linsolve.choose("auto", 10 * linsolve.AUTO_DIRECT_MAX_DOFS) == "amg"
+    if linsolve.has_pardiso():  # tetra10: the direct solver further (AMG-CG converges slowly there)
+        n = (linsolve.AUTO_DIRECT_MAX_DOFS + linsolve.AUTO_DIRECT_MAX_DOFS_QUADRATIC) // 2
+        assert linsolve.choose("auto", n, order=1) == "amg"
+        assert linsolve.choose("auto", n, order=2) == "pardiso"
+        assert linsolve.choose("auto", 2 * linsolve.AUTO_DIRECT_MAX_DOFS_QUADRATIC, order=2) == "amg"
     assert linsolve.choose("scipy", 10**7) == "scipy"
 
 

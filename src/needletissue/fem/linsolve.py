@@ -21,6 +21,10 @@ REUSE_ANALYSIS = True
 # "auto": direct Pardiso up to this many free dofs (robust; AMG-CG is 1.5x faster at 69k dofs and 3x at
 # 186k dofs with 40 % less memory, docs/fem.md), PyAMG-CG above; SciPy only small and without Pardiso.
 AUTO_DIRECT_MAX_DOFS = 150_000
+# Quadratic (tetra10) models: AMG-CG needs far more iterations there. The anatomical model at 273,330 dofs
+# (tetra10, 100/200/300 N): Pardiso 426 s CPU, 4.96 GiB peak; AMG-CG 2,679 s CPU, 3.28 GiB; same answer to
+# 1e-5 (docs/pelvis_model.md, "Mesh convergence"). Pardiso's memory grows ~n^1 here: ~7 GiB at 400k.
+AUTO_DIRECT_MAX_DOFS_QUADRATIC = 400_000
 AUTO_SCIPY_MAX_DOFS = 20_000
 
 
@@ -28,8 +32,8 @@ def has_pardiso() -> bool:
     return find_spec("pypardiso") is not None
 
 
-def choose(name: str, ndof: int) -> str:
-    """Resolve "auto" by the number of free dofs; validate explicit names."""
+def choose(name: str, ndof: int, order: int = 1) -> str:
+    """Resolve "auto" by the number of free dofs and the element order; validate explicit names."""
     if name not in SOLVERS:
         raise InputError("solver", f"must be one of {SOLVERS}, got {name!r}")
     if name == "pardiso" and not has_pardiso():
@@ -37,7 +41,8 @@ def choose(name: str, ndof: int) -> str:
     if name != "auto":
         return name
     if has_pardiso():
-        return "pardiso" if ndof <= AUTO_DIRECT_MAX_DOFS else "amg"
+        limit = AUTO_DIRECT_MAX_DOFS_QUADRATIC if order == 2 else AUTO_DIRECT_MAX_DOFS
+        return "pardiso" if ndof <= limit else "amg"
     return "scipy" if ndof <= AUTO_SCIPY_MAX_DOFS else "amg"
 
 

@@ -250,7 +250,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
 
     t0 = time.perf_counter()
     loads = _Loads(model, bcs)
-    name = linsolve.choose(solver, len(loads.dof1))
+    name = linsolve.choose(solver, len(loads.dof1), model.order)
     linear = linsolve.make(name, model.mesh.points, loads.dof1)
     bodies = list(model.bodies.values())
     all_items = [*bodies, *(ld for ld, _ in loads.loads), *items]
