@@ -143,7 +143,9 @@ def _rhs(z, s, x0, y0, kind, kh, kz, kt, kr, P, ds, iKGA, iEA, iEI, iGJ, shear, 
     ux = s[0] - x0
     uy = s[1] - y0
     uz = s[2] - z
-    f0 = 0.0; f1 = 0.0; f2 = 0.0
+    f0 = 0.0
+    f1 = 0.0
+    f2 = 0.0
     if kind == 0:
         f0 = -kh * ux
         f1 = -kh * uy
@@ -164,6 +166,7 @@ def _rhs(z, s, x0, y0, kind, kh, kz, kt, kr, P, ds, iKGA, iEA, iEI, iGJ, shear, 
         ds[17] += kt * 0.5 * (R10 - R01)
         ds[15] += kr * 0.5 * (R21 - R12)
         ds[16] += kr * 0.5 * (R02 - R20)
+
 
 @njit(cache=True)
 def _start(a, x0, y0, P, s, Rw):

@@ -80,6 +80,8 @@ class Discretisation:
     names: tuple     # segment names
     z: np.ndarray    # reference z of every node
     H0: np.ndarray | None = None  # inverse tangent at rest (set on first use)
+    # pose(): the needles' end states (needles, 19) at recent answers, by the answer's bytes, most recent last
+    ends: dict = field(default_factory=dict, repr=False, compare=False)
 
 
 def _attachments(model: FrameModel) -> np.ndarray:
@@ -637,10 +639,7 @@ def pose(force, moment=None, model: FrameModel | None = None, initial=None):
     out = np.empty(7)
     # the needles' end states at recent answers: a warm start from one of them needs no integration
     # before its first step (a few entries, most recently used first: the last answer or a fixed reference)
-    ends = disc.__dict__.get("ends")
-    if ends is None:
-        ends = {}
-        object.__setattr__(disc, "ends", ends)
+    ends = disc.ends
     key = y.tobytes() if initial is not None else None
     hit = ends.pop(key, None) if key is not None else None
     E = np.empty((disc.NX.shape[0], 19)) if hit is None else hit.copy()
