@@ -305,6 +305,14 @@ def chain_conclusion(steps: list, checks: list) -> str:
     return text
 
 
+PLASTIC_TAG = " (plastic=True)"  # after a frame case's name in its setup text
+
+
+def _case_name(case) -> str:
+    """The frame case (chain step) an elastic-plastic ratio case was run on."""
+    return case.setup.split(PLASTIC_TAG)[0]
+
+
 def ratio_cases(ritz_model, frame_cases, order=3) -> list:
     """w(300 N) / w(100 N): the Ritz model as configured and in its linear limit (k -> 0), and the frame
     model elastic, and elastic-plastic where asked, on each of frame_cases [(name, FrameModel, unit force,
@@ -328,7 +336,7 @@ def ratio_cases(ritz_model, frame_cases, order=3) -> list:
         for plastic in (False, True)[:1 + with_plastic]:
             mm = _with(m, plastic=plastic)
             v, u = _frame_values(mm, F, unit)
-            out.append(RatioCase("frame", f"{name}{' (plastic=True)' if plastic else ''}: {_frame_setup(mm, F)}",
+            out.append(RatioCase("frame", f"{name}{PLASTIC_TAG if plastic else ''}: {_frame_setup(mm, F)}",
                                  v, not plastic, u))
             if plastic and out[-2].yield_utilisation[1] > 1.0 and out[-1].increase_percent > target:
                 out.append(_plastic_match(mm, unit, out[-2].yield_utilisation[1], name))
@@ -350,7 +358,7 @@ def _plastic_match(m, unit, u300: float, name: str) -> RatioCase:
     s = brentq(g, 0.9 / u300, 1.0, xtol=1e-5)
     F = [100.0 * s, 300.0 * s]
     v, u = _frame_values(m, F, unit)
-    return RatioCase("frame", f"{name} (plastic=True), loaded from F = {F[0]:.1f} N to 3F = {F[1]:.1f} N: the load "
+    return RatioCase("frame", f"{name}{PLASTIC_TAG}, loaded from F = {F[0]:.1f} N to 3F = {F[1]:.1f} N: the load "
                      "range over which this pin gives the paper's ratio (solved for F)", v, False, u, F)
 
 
@@ -384,7 +392,7 @@ def ratio_conclusion(cases: list) -> str:
                      f"{', '.join(f'{c.yield_utilisation[1]:.2f}' for c in sub)} at 300 N) and the elastic-plastic "
                      f"case is sub-linear too ({', '.join(f'{c.increase_percent:+.1f} %' for c in sub)}).")
     for c in match:
-        text += (f" The elastic-plastic pin of {c.setup.split(' (plastic=True)')[0]} gives the paper's ratio exactly "
+        text += (f" The elastic-plastic pin of {_case_name(c)} gives the paper's ratio exactly "
                  f"({c.increase_percent:+.2f} %) when "
                  f"loaded from {c.forces_N[0]:.1f} to {c.forces_N[1]:.1f} N (elastic-equivalent stress / yield "
                  f"{c.yield_utilisation[0]:.2f} and {c.yield_utilisation[1]:.2f}): a pin elastic at the lower force "
@@ -518,7 +526,7 @@ def _reason(c, rec: Reconciliation, pelvis: dict | None) -> str:
             text += (f"; an elastic-plastic pin carrying the whole force yields and gives {top.increase_percent:+.0f} %: "
                      "the paper's +250.08 % is not what an elastic model gives")
         for x in match:
-            text += (f"; the elastic-plastic pin of {x.setup.split(' (plastic=True)')[0]} gives "
+            text += (f"; the elastic-plastic pin of {_case_name(x)} gives "
                      f"{x.increase_percent:+.2f} % from {x.forces_N[0]:.1f} to {x.forces_N[1]:.1f} N (elastic below, "
                      "yielding above)")
         return text + "."
