@@ -230,6 +230,9 @@ def test_pose_and_batch_equal_solve():
         assert abs(dmax - cold[2]) < 1e-6
     with pytest.raises(InputError, match="force_N"):
         frame.solve_batch([[0, 0, float("nan")]], model=m)
+    for bad in ([np.inf, -np.inf, 0.0], [np.nan, 0.0, 0.0]):  # the control loop's fast input check too
+        with pytest.raises(InputError, match="force_N"):
+            frame.pose(np.array(bad), model=m)
 
 
 def test_elastic_plastic_section():

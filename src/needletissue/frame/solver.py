@@ -266,7 +266,7 @@ def _vec(field_name: str, value, n=3) -> np.ndarray:
     if value is None:
         return np.zeros(n)
     if type(value) is np.ndarray and value.shape == (n,) and value.dtype == np.float64:
-        if math.isfinite(math.fsum(value.tolist())):  # the control loop's path: one check instead of n
+        if math.isfinite(sum(value.tolist())):  # the control loop's path: one check (inf - inf is NaN)
             return value.copy()
     try:
         vals = list(value)
