@@ -633,3 +633,296 @@ def pose_solve(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, ou
     if st == OK:
         finish(y, E, NX, P0, P, C, zc_top, out)
     return it, st
+
+
+@njit(cache=True)
+def batch_near(F, M, order, y0, H0, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, refresh, out, status):
+    """N wrenches in the given order (neighbours next to each other), each from the previous answer: its pins'
+    end states make the first quasi-Newton step free (the wrench enters the residual only in the clamp's
+    rows), and the inverse tangent is the exact one at a recent answer (an anchor), so that step leaves an
+    error O(|dw|^2) and the next ones contract fast. A solve that needs more than `refresh` passes makes its
+    answer the new anchor (one forward-difference Jacobian). A warm start that fails: from rest, then Newton
+    with load stepping, as batch(). out, status as in batch()."""
+    nn = NX.shape[0]
+    N = 6 * nn + 6
+    W = np.empty(6)
+    E = np.empty((nn, 19))
+    Ep = np.empty((nn, 19))
+    y = np.empty(N)
+    yp = y0.copy()
+    Ha = H0.copy()
+    H = np.empty((N, N))
+    J = np.empty((N, N))
+    have_prev = False
+    for q in range(order.shape[0]):
+        m = order[q]
+        for i in range(3):
+            W[i] = F[m, i]
+            W[3 + i] = M[m, i]
+        it = 0
+        st = MAX_ITER
+        if have_prev:
+            y[:] = yp
+            E[:, :] = Ep
+            H[:, :] = Ha
+            it, st = broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol[m], 15, E, True)
+        fresh = st != OK
+        if fresh:
+            y[:] = y0
+            H[:, :] = H0
+            it2, st = broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol[m], 40, E)
+            it += it2
+            if st != OK:
+                y[:] = y0
+                it2, st, steps = solve_path(y, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol[m], 12)
+                it += it2
+                if st == OK:
+                    dummy = np.empty((1, 18))
+                    for k in range(nn):
+                        integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k],
+                                  dummy, False)
+        if st == OK:
+            finish(y, E, NX, P0, P, C, zc_top, out[m])
+            yp[:] = y
+            Ep[:, :] = E
+            have_prev = True
+            if fresh or it > refresh:
+                jacobian(y, 1.0, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, J)
+                Ha[:, :] = np.linalg.inv(J)
+        status[m, 0] = it
+        status[m, 1] = st
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _rhs_lanes(z, s, x0, y0, cl, ct, kz, kt, kr, ds, iKGA, iEA, iEI, iGJ, shear):
+    """_rhs for lanes of states s (18, lanes), elastic section only, branch-free (the segment's kind is in the
+    coefficients: lateral cl + ct |u|^2, axial kz, torsion kt, rocking kr) so the lane loop vectorises."""
+    for l in range(s.shape[1]):
+        n0 = s[12, l]
+        n1 = s[13, l]
+        n2 = s[14, l]
+        m0 = s[15, l]
+        m1 = s[16, l]
+        m2 = s[17, l]
+        R00, R01, R02 = s[3, l], s[4, l], s[5, l]
+        R10, R11, R12 = s[6, l], s[7, l], s[8, l]
+        R20, R21, R22 = s[9, l], s[10, l], s[11, l]
+        nl0 = R00 * n0 + R10 * n1 + R20 * n2
+        nl1 = R01 * n0 + R11 * n1 + R21 * n2
+        nl2 = R02 * n0 + R12 * n1 + R22 * n2
+        k0 = (R00 * m0 + R10 * m1 + R20 * m2) * iEI
+        k1 = (R01 * m0 + R11 * m1 + R21 * m2) * iEI
+        k2 = (R02 * m0 + R12 * m1 + R22 * m2) * iGJ
+        g0 = shear * nl0 * iKGA
+        g1 = shear * nl1 * iKGA
+        g2 = 1.0 + shear * nl2 * iEA
+        t0 = R00 * g0 + R01 * g1 + R02 * g2
+        t1 = R10 * g0 + R11 * g1 + R12 * g2
+        t2 = R20 * g0 + R21 * g1 + R22 * g2
+        ds[0, l] = t0
+        ds[1, l] = t1
+        ds[2, l] = t2
+        ds[3, l] = R01 * k2 - R02 * k1
+        ds[4, l] = -R00 * k2 + R02 * k0
+        ds[5, l] = R00 * k1 - R01 * k0
+        ds[6, l] = R11 * k2 - R12 * k1
+        ds[7, l] = -R10 * k2 + R12 * k0
+        ds[8, l] = R10 * k1 - R11 * k0
+        ds[9, l] = R21 * k2 - R22 * k1
+        ds[10, l] = -R20 * k2 + R22 * k0
+        ds[11, l] = R20 * k1 - R21 * k0
+        ux = s[0, l] - x0
+        uy = s[1, l] - y0
+        w = cl + ct * (ux * ux + uy * uy)
+        ds[12, l] = w * ux
+        ds[13, l] = w * uy
+        ds[14, l] = kz * (s[2, l] - z)
+        ds[15, l] = -(t1 * n2 - t2 * n1) + kr * 0.5 * (R21 - R12)
+        ds[16, l] = -(t2 * n0 - t0 * n2) + kr * 0.5 * (R02 - R20)
+        ds[17, l] = -(t0 * n1 - t1 * n0) + kt * 0.5 * (R10 - R01)
+
+
+@njit(cache=True, fastmath=True)
+def integrate_lanes(s, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, k1, k2, k3, k4, t, best):
+    """integrate() for lanes of start states s (18, lanes), in place (end states), elastic section only;
+    best (lanes,): the largest |u| over the step boundaries. k1 .. t: work arrays like s."""
+    nl = s.shape[1]
+    iKGA = 1.0 / P[KGA]
+    iEA = 1.0 / P[EA]
+    iEI = 1.0 / P[EI]
+    iGJ = 1.0 / P[GJ]
+    shear = 1.0 if P[SHEAR] > 0.0 else 0.0
+    for l in range(nl):
+        best[l] = (s[0, l] - x0) ** 2 + (s[1, l] - y0) ** 2 + (s[2, l] - SZ[0]) ** 2
+    for g in range(SK.shape[0]):
+        za = SZ[g]
+        nst = SN[g]
+        h = (SZ[g + 1] - za) / nst
+        kind = SK[g]
+        cl = SKH[g] if kind < 2 else 0.0
+        ct = SKH[g] if kind == 1 else 0.0
+        kz = SKZ[g] if kind == 0 else 0.0
+        kt = SKT[g, 0] if kind == 0 else 0.0
+        kr = SKT[g, 1] if kind == 0 else 0.0
+        for st in range(nst):
+            z = za + st * h
+            _rhs_lanes(z, s, x0, y0, cl, ct, kz, kt, kr, k1, iKGA, iEA, iEI, iGJ, shear)
+            for i in range(18):
+                for l in range(nl):
+                    t[i, l] = s[i, l] + 0.5 * h * k1[i, l]
+            _rhs_lanes(z + 0.5 * h, t, x0, y0, cl, ct, kz, kt, kr, k2, iKGA, iEA, iEI, iGJ, shear)
+            for i in range(18):
+                for l in range(nl):
+                    t[i, l] = s[i, l] + 0.5 * h * k2[i, l]
+            _rhs_lanes(z + 0.5 * h, t, x0, y0, cl, ct, kz, kt, kr, k3, iKGA, iEA, iEI, iGJ, shear)
+            for i in range(18):
+                for l in range(nl):
+                    t[i, l] = s[i, l] + h * k3[i, l]
+            _rhs_lanes(z + h, t, x0, y0, cl, ct, kz, kt, kr, k4, iKGA, iEA, iEI, iGJ, shear)
+            for i in range(18):
+                for l in range(nl):
+                    s[i, l] += h / 6.0 * (k1[i, l] + 2.0 * k2[i, l] + 2.0 * k3[i, l] + k4[i, l])
+            zz = z + h
+            for l in range(nl):
+                d = (s[0, l] - x0) ** 2 + (s[1, l] - y0) ** 2 + (s[2, l] - zz) ** 2
+                if d > best[l]:
+                    best[l] = d
+    for l in range(nl):
+        best[l] = np.sqrt(best[l])
+
+
+@njit(cache=True)
+def batch_anchor(F, M, Wa, ya, Ea, Ha, D, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, maxit, lanes,
+                 out, status):
+    """N wrenches near one anchor wrench Wa (answer ya, end states Ea, exact inverse tangent Ha and its
+    derivatives D (6, n, n) along the six wrench components): each starts from the anchor's predictor
+    ya - H(Wa + dw/2) r(ya, W) (the secant's inverse tangent at the midpoint: error O(|dw|^3)), then Broyden
+    with H(W) = Ha + sum dw_d D_d. `lanes` solves run in lock-step (one vectorised integration per pin and pass);
+    a lane whose solve converged takes the next wrench. A solve that fails here gets status MAX_ITER or
+    NOT_FINITE (the caller solves it again the robust way); never an unconverged answer."""
+    nn = NX.shape[0]
+    N = 6 * nn + 6
+    n = F.shape[0]
+    L = lanes
+    Y = np.empty((L, N))
+    Hs = np.empty((L, N, N))
+    R = np.empty((L, N))
+    S = np.empty((L, N))
+    RN = np.empty(L)
+    IT = np.zeros(L, np.int64)
+    MI = np.full(L, -1, np.int64)
+    El = np.empty((L, nn, 19))
+    st = np.empty((nn, 18, L))
+    k1 = np.empty((18, L))
+    k2 = np.empty((18, L))
+    k3 = np.empty((18, L))
+    k4 = np.empty((18, L))
+    tw = np.empty((18, L))
+    best = np.empty(L)
+    W = np.empty(6)
+    r0 = np.empty(N)
+    rnew = np.empty(N)
+    dr = np.empty(N)
+    Hd = np.empty(N)
+    sH = np.empty(N)
+    a = np.empty(6)
+    Rw = np.empty((3, 3))
+    sv = np.empty(18)
+    nxt = 0
+    active = 0
+    while True:
+        # load idle lanes: the anchor's predictor
+        for l in range(L):
+            if MI[l] < 0 and nxt < n:
+                m = nxt
+                nxt += 1
+                MI[l] = m
+                IT[l] = 0
+                for i in range(3):
+                    W[i] = F[m, i]
+                    W[3 + i] = M[m, i]
+                residual(Ea, ya[6 * nn:], NX, P0, W, 1.0, P, r0)
+                H = Hs[l]
+                c0, c1, c2 = W[0] - Wa[0], W[1] - Wa[1], W[2] - Wa[2]
+                c3, c4, c5 = W[3] - Wa[3], W[4] - Wa[4], W[5] - Wa[5]
+                for i in range(N):
+                    for j in range(N):
+                        H[i, j] = (Ha[i, j] + c0 * D[0, i, j] + c1 * D[1, i, j] + c2 * D[2, i, j] + c3 * D[3, i, j]
+                                   + c4 * D[4, i, j] + c5 * D[5, i, j])
+                # ya - H(Wa + dw/2) r0, H linear in dw: ya - (Ha + H(W)) r0 / 2
+                for i in range(N):
+                    v = 0.0
+                    for j in range(N):
+                        v += (Ha[i, j] + H[i, j]) * r0[j]
+                    Y[l, i] = ya[i] - 0.5 * v
+                active += 1
+        if active == 0:
+            break
+        # one pass: every lane's pins integrated together
+        for k in range(nn):
+            for l in range(L):
+                for i in range(6):
+                    a[i] = Y[l, 6 * k + i]
+                _start(a, NX[k, 0], NX[k, 1], P, sv, Rw)
+                for i in range(18):
+                    st[k, i, l] = sv[i]
+            integrate_lanes(st[k], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, k1, k2, k3, k4, tw, best)
+            for l in range(L):
+                for i in range(18):
+                    El[l, k, i] = st[k, i, l]
+                El[l, k, 18] = best[l]
+        for l in range(L):
+            m = MI[l]
+            if m < 0:
+                continue
+            for i in range(3):
+                W[i] = F[m, i]
+                W[3 + i] = M[m, i]
+            residual(El[l], Y[l, 6 * nn:], NX, P0, W, 1.0, P, rnew)
+            rn = _norm(rnew)
+            it = IT[l]
+            code = -1
+            if not np.isfinite(rn) or (it > 0 and not rn < 10.0 * RN[l] + 1e-300):
+                code = NOT_FINITE
+            elif rn <= tol[m]:
+                code = OK
+            elif it >= maxit:
+                code = MAX_ITER
+            if code >= 0:
+                if code == OK:
+                    finish(Y[l], El[l], NX, P0, P, C, zc_top, out[m])
+                status[m, 0] = it
+                status[m, 1] = code
+                MI[l] = -1
+                active -= 1
+                continue
+            H = Hs[l]
+            if it > 0:  # Broyden's good update with the last step S[l] and the residual change
+                for i in range(N):
+                    dr[i] = rnew[i] - R[l, i]
+                den = 0.0
+                for i in range(N):
+                    v = 0.0
+                    for j in range(N):
+                        v += H[i, j] * dr[j]
+                    Hd[i] = v
+                    den += S[l, i] * v
+                for j in range(N):
+                    v = 0.0
+                    for i in range(N):
+                        v += S[l, i] * H[i, j]
+                    sH[j] = v
+                if den != 0.0:
+                    for i in range(N):
+                        c = (S[l, i] - Hd[i]) / den
+                        for j in range(N):
+                            H[i, j] += c * sH[j]
+            for i in range(N):
+                v = 0.0
+                for j in range(N):
+                    v -= H[i, j] * rnew[j]
+                S[l, i] = v
+                Y[l, i] += v
+                R[l, i] = rnew[i]
+            RN[l] = rn
+            IT[l] = it + 1
