@@ -635,64 +635,6 @@ def pose_solve(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, ou
     return it, st
 
 
-@njit(cache=True)
-def batch_near(F, M, order, y0, H0, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, refresh, out, status):
-    """N wrenches in the given order (neighbours next to each other), each from the previous answer: its pins'
-    end states make the first quasi-Newton step free (the wrench enters the residual only in the clamp's
-    rows), and the inverse tangent is the exact one at a recent answer (an anchor), so that step leaves an
-    error O(|dw|^2) and the next ones contract fast. A solve that needs more than `refresh` passes makes its
-    answer the new anchor (one forward-difference Jacobian). A warm start that fails: from rest, then Newton
-    with load stepping, as batch(). out, status as in batch()."""
-    nn = NX.shape[0]
-    N = 6 * nn + 6
-    W = np.empty(6)
-    E = np.empty((nn, 19))
-    Ep = np.empty((nn, 19))
-    y = np.empty(N)
-    yp = y0.copy()
-    Ha = H0.copy()
-    H = np.empty((N, N))
-    J = np.empty((N, N))
-    have_prev = False
-    for q in range(order.shape[0]):
-        m = order[q]
-        for i in range(3):
-            W[i] = F[m, i]
-            W[3 + i] = M[m, i]
-        it = 0
-        st = MAX_ITER
-        if have_prev:
-            y[:] = yp
-            E[:, :] = Ep
-            H[:, :] = Ha
-            it, st = broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol[m], 15, E, True)
-        fresh = st != OK
-        if fresh:
-            y[:] = y0
-            H[:, :] = H0
-            it2, st = broyden(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol[m], 40, E)
-            it += it2
-            if st != OK:
-                y[:] = y0
-                it2, st, steps = solve_path(y, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, tol[m], 12)
-                it += it2
-                if st == OK:
-                    dummy = np.empty((1, 18))
-                    for k in range(nn):
-                        integrate(y[6 * k: 6 * k + 6], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, E[k],
-                                  dummy, False)
-        if st == OK:
-            finish(y, E, NX, P0, P, C, zc_top, out[m])
-            yp[:] = y
-            Ep[:, :] = E
-            have_prev = True
-            if fresh or it > refresh:
-                jacobian(y, 1.0, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, J)
-                Ha[:, :] = np.linalg.inv(J)
-        status[m, 0] = it
-        status[m, 1] = st
-
-
 @njit(cache=True, fastmath=True, inline="always")
 def _rhs_lanes(z, s, x0, y0, cl, ct, kz, kt, kr, ds, iKGA, iEA, iEI, iGJ, shear):
     """_rhs for lanes of states s (18, lanes), elastic section only, branch-free (the segment's kind is in the
