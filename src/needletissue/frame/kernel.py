@@ -289,7 +289,7 @@ def residual(E, yc, NX, P0, W, lam, P, res):
     Q = np.empty((3, 3))
     expm(yc[3:6], Q)
     elastic = P[ELASTIC] > 0.0
-    D = np.zeros((nn, 6))
+    D = np.zeros((nn if elastic else 1, 6))
     if elastic:
         _clamp_deflection(E, Q, P, D)
     c0 = yc[0] * P[LS]
@@ -313,17 +313,17 @@ def residual(E, yc, NX, P0, W, lam, P, res):
             if elastic:
                 target += Q[i, 0] * D[k, 0] + Q[i, 1] * D[k, 1] + Q[i, 2] * D[k, 2]
             res[6 * k + i] = (E[k, i] - target) / P[LS]
-        # 0.5 vee(Q^T R - R^T Q), R[i, j] = E[k, 3 + 3 i + j]
-        A = np.zeros((3, 3))
-        for i in range(3):
-            for j in range(3):
-                v = 0.0
-                for m in range(3):
-                    v += Q[m, i] * E[k, 3 + 3 * m + j]
-                A[i, j] = v
-        res[6 * k + 3] = 0.5 * (A[2, 1] - A[1, 2])
-        res[6 * k + 4] = 0.5 * (A[0, 2] - A[2, 0])
-        res[6 * k + 5] = 0.5 * (A[1, 0] - A[0, 1])
+        # 0.5 vee(A - A^T), A = Q^T R, R[i, j] = E[k, 3 + 3 i + j]: the six off-diagonal entries (no array: the
+        # batch calls this ~3 times per solve)
+        A01 = Q[0, 0] * E[k, 4] + Q[1, 0] * E[k, 7] + Q[2, 0] * E[k, 10]
+        A02 = Q[0, 0] * E[k, 5] + Q[1, 0] * E[k, 8] + Q[2, 0] * E[k, 11]
+        A10 = Q[0, 1] * E[k, 3] + Q[1, 1] * E[k, 6] + Q[2, 1] * E[k, 9]
+        A12 = Q[0, 1] * E[k, 5] + Q[1, 1] * E[k, 8] + Q[2, 1] * E[k, 11]
+        A20 = Q[0, 2] * E[k, 3] + Q[1, 2] * E[k, 6] + Q[2, 2] * E[k, 9]
+        A21 = Q[0, 2] * E[k, 4] + Q[1, 2] * E[k, 7] + Q[2, 2] * E[k, 10]
+        res[6 * k + 3] = 0.5 * (A21 - A12)
+        res[6 * k + 4] = 0.5 * (A02 - A20)
+        res[6 * k + 5] = 0.5 * (A10 - A01)
         if elastic:  # the attachment's section turned by dtheta_k (small) relative to the reference
             res[6 * k + 3] -= D[k, 3]
             res[6 * k + 4] -= D[k, 4]
