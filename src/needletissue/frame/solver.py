@@ -576,7 +576,7 @@ class BatchResult:
     iterations: np.ndarray               # (N,)
 
 
-LANES = 16          # batch: solves integrated in lock-step (one vectorised integration per pin and pass)
+LANES = 32          # batch: solves integrated in lock-step (one vectorised integration per pin and pass)
 CELL_MIN = 200      # batch: fewest wrenches that get their own anchor (an anchor costs ~20 solves)
 CELL_SPREAD = 0.1   # batch: a cell wider than this (scaled wrench, relative to its centre) is split
 DERIV_MIN = 1000    # batch: fewest wrenches for the anchor's tangent derivatives (12 more solves and tangents)
@@ -605,7 +605,7 @@ def _anchor(disc: Discretisation, Wa: np.ndarray, derivatives: bool):
         # polished far below the batch's tolerance: the predictors start from it
         y = y.copy()
         E = np.empty((nn, 19))
-        tol = 1e-3 * _tol(disc, W)
+        tol = max(1e-3 * _tol(disc, W), 1e-14)
         it, st = k.broyden(y, H.copy(), disc.NX, disc.P0, W, *G, tol, BROYDEN_MAXIT, E)
         if st != k.OK:
             return None
