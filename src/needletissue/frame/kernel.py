@@ -20,7 +20,8 @@ R = Q with the clamp pose (c, Q = exp(phi)) (elastic clamp: plus the clamp bar's
 residual()). Unknowns: 6 per needle (shooting) + 6 of the clamp; the
 residuals: 6 per needle (end mismatch) + 6 clamp equilibrium with the applied wrench (dead load) at
 P0 + c. Newton with a forward-difference Jacobian (one integration per needle unknown), load
-stepping with cut-back.
+stepping with cut-back. The batch (batch_anchor) runs lanes of quasi-Newton solves in lock-step from an
+anchor's predictor, one vectorised integration per pin and pass (integrate_lanes, elastic section only).
 """
 
 from __future__ import annotations
