@@ -1028,6 +1028,11 @@ def _newton4(c, F, kb, tab, n, il, cos_term):
         slope = g0 * d0 + g1 * d1 + g2 * d2
         scale = abs(eb) + abs(es) + abs(w) + 1e-300
         last = pd and (dn <= _RTOL * cn + _ATOL or -slope <= 1e-15 * scale)
+        if last and -slope <= 1e-13 * scale:  # the test below accepts it whatever Pi is there
+            c[0] = t0
+            c[1] = t1
+            c[2] = t2
+            return it + 1, OK
         r = _energy4g(t0, t1, t2, tab, n, il, cos_term, kb, F, not last)
         if not (_safe(t0, t1, r[2], r[0]) and abs(t2) <= _C_BIG):
             return 0, FALLBACK
@@ -1070,6 +1075,19 @@ def _newton4(c, F, kb, tab, n, il, cos_term):
     c[2] = c2
     return _MAXIT, MAX_ITER
 
+
+
+@njit(cache=True)
+def _sup4(x0, x1, x2, grid):
+    """max over the grid of |v| for order-4 basis coefficients x, in monomial form (vectorised)."""
+    a = x0 * _M4[0, 0] + x1 * _M4[1, 0] + x2 * _M4[2, 0]
+    b = x1 * _M4[1, 1] + x2 * _M4[2, 1]
+    c = x2 * _M4[2, 2]
+    e = 0.0
+    for k in range(grid.shape[0]):
+        s = grid[k]
+        e = max(e, abs(s * s * (a + s * (b + s * c))))
+    return e
 
 
 def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
@@ -1130,12 +1148,15 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
             if st2 != OK:
                 st = st2
                 break
-            est = 0.0
-            for k in range(grid.shape[0]):
-                dv = c2[p - 1] * gphi[k, p - 1]
-                for i in range(p - 1):
-                    dv += (c2[i] - c[i]) * gphi[k, i]
-                est = max(est, abs(dv))
+            if p == 3 and closed4:
+                est = _sup4(c2[0] - c[0], c2[1] - c[1], c2[2], grid)
+            else:
+                est = 0.0
+                for k in range(grid.shape[0]):
+                    dv = c2[p - 1] * gphi[k, p - 1]
+                    for i in range(p - 1):
+                        dv += (c2[i] - c[i]) * gphi[k, i]
+                    est = max(est, abs(dv))
             if not auto:
                 break
             # auto: stop when the changes to AND from order p are both below tol (one small change
