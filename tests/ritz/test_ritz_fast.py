@@ -179,7 +179,7 @@ def test_closed_form_energy_is_the_integral(cos):
 def test_order4_estimate_equals_reference_on_stiff_tissue(monkeypatch, cos):
     """The order-3 estimate's order-4 solve (kernel._newton4: monomial basis at the Gauss points, scalar
     Newton state) against the reference loops and against the previous unrolled Gauss-point order-4
-    solve (solver._CLOSED4 = False), every parameter random, tissue up to 10^4 x Table 1 (where an
+    solve (solver._MONOMIAL4 = False), every parameter random, tissue up to 10^4 x Table 1 (where an
     order-4 closed form in moments lost up to 8 digits), loads near the bone: estimates equal to 1e-9
     relative (or round-off of the deflection, 1e-12 of max |v|, where the estimate itself is tiny)."""
     rng = np.random.default_rng(23)
@@ -190,7 +190,7 @@ def test_order4_estimate_equals_reference_on_stiff_tissue(monkeypatch, cos):
     kw["load_point_mm"] = kw["free_length_mm"] * np.exp(rng.uniform(np.log(0.01), 0.0, n))
     model = RitzModel(cos_term=cos)
     ref, new = _both(monkeypatch, lambda: ritz.solve_batch(**kw, model=model, parallel=False))
-    monkeypatch.setattr(solver, "_CLOSED4", False)
+    monkeypatch.setattr(solver, "_MONOMIAL4", False)
     prev = ritz.solve_batch(**kw, model=model, parallel=False)
     _assert_same(ref, new)
     for other in (ref, prev):

@@ -1092,11 +1092,11 @@ def _sup4(x0, x1, x2, grid):
 
 
 def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
-                 A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate, closed4):
+                 A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate, mono4):
     """Samples start..stop-1. The model arrays KB, L, Z3, T, K have one row per sample, or a single
     row that every sample shares (a batch that varies the force only). closed: order 3 through the
     closed-form energy (cubic_table); estimate: also solve order p + 1 for error_estimate (else NaN);
-    closed4: with closed, the order-4 solve of the order-3 estimate through _newton4."""
+    mono4: with closed, the order-4 solve of the order-3 estimate through _newton4 (else Gauss path)."""
     nl = T.shape[1]
     wk = _workspace(pmax + 1, nl)
     c = np.zeros(pmax)
@@ -1112,7 +1112,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
     n4 = 0
     if cubic and shared:
         cubic_table(L[0], T[0], K[0], Z3[0], cos_term, tab, mu, GX, GW)
-        if estimate and closed4:
+        if estimate and mono4:
             n4 = quartic_points(L[0], T[0], K[0], Z3[0], cos_term, tab4, GX, GW)
     for m in range(start, stop):
         g = 0 if shared else m
@@ -1139,7 +1139,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
                 c2[i] = c[i]
             c2[p - 1] = 0.0
             st2 = FALLBACK
-            if cubic and closed4 and p == 3:  # order 4 in closed form as well
+            if cubic and mono4 and p == 3:  # order 4 in monomial form, scalar state
                 if not shared:
                     n4 = quartic_points(L[g], T[g], K[g], Z3[g], cos_term, tab4, GX, GW)
                 it2, st2 = _newton4(c2, F[m], KB[g], tab4, n4, 1.0 / L[g], cos_term)
@@ -1149,7 +1149,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
             if st2 != OK:
                 st = st2
                 break
-            if p == 3 and closed4:
+            if cubic and mono4 and p == 3:
                 est = _sup4(c2[0] - c[0], c2[1] - c[1], c2[2], grid)
             else:
                 est = 0.0
@@ -1192,7 +1192,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
 
 
 def _solve_all(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, A, Ad, GX, GW, grid, gphi,
-               C, S, R, chunks, fast, closed, estimate, closed4):
+               C, S, R, chunks, fast, closed, estimate, mono4):
     N = F.shape[0]
     size = (N + chunks - 1) // chunks
     for b in prange(chunks):
@@ -1200,7 +1200,7 @@ def _solve_all(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, A, Ad, GX, 
         stop = min(N, start + size)
         if start < stop:
             _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
-                         A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate, closed4)
+                         A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate, mono4)
 
 
 _solve_range = njit(cache=True)(_solve_range)
