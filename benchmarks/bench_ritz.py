@@ -9,13 +9,14 @@ p = 3 solve <= 50 us through the Python API; >= 100,000 p = 3 solves per second 
 #18: >= 1,000,000 per second on one core.
 
 The per-core table runs, in one process and alternating (repeats interleaved, medians of CPU time),
-the serial p = 3 batch on four kernel paths: the reference loops (solver._FAST = False), the unrolled
-Gauss-point path of the previous version (solver._CLOSED = False), the closed-form order 3 (the
-default, with its order-4 error estimate) and the closed form with error_estimate=False. Each on two
+the serial p = 3 batch on five kernel paths: the reference loops (solver._FAST = False), the unrolled
+Gauss-point path (solver._CLOSED = False), the closed-form order 3 with its order-4 error estimate on
+the unrolled Gauss-point path (the previous version, solver._MONOMIAL4 = False), the same with the
+order-4 solve in monomial form (the default) and the closed form with error_estimate=False. Each on two
 batches of 200,000: every parameter random (diameter, free length, both k; the studies' case; forces
 up to 2,000 N as in the earlier versions of this benchmark, 4.8 Newton iterations on average) and the
 force only (one model, one table for the batch; forces up to 300 N, 3.1 iterations). Ratios are
-against the previous version.
+against the previous version (closed-form order 3, Gauss-point order-4 estimate).
 """
 
 import numpy as np
@@ -29,10 +30,12 @@ MODEL = ritz.RitzModel()
 N_BATCH = 200_000
 _MEDIANS = {}
 _CPU = {}  # CPU seconds per solve, serial batch
-# (name, solver._FAST, solver._CLOSED, error_estimate)
-PATHS = (("reference loops", False, False, True), ("unrolled (previous)", True, False, True),
-         ("closed form", True, True, True), ("closed form, no estimate", True, True, False))
-BASE = "unrolled (previous)"
+# (name, solver._FAST, solver._CLOSED, solver._MONOMIAL4, error_estimate)
+PATHS = (("reference loops", False, False, False, True), ("unrolled", True, False, False, True),
+         ("closed form, Gauss order-4 estimate (previous)", True, True, False, True),
+         ("closed form, monomial order-4 estimate", True, True, True, True),
+         ("closed form, no estimate", True, True, True, False))
+BASE = "closed form, Gauss order-4 estimate (previous)"
 
 
 def batches(n=N_BATCH, seed=0):
@@ -50,22 +53,22 @@ def cpu_table(n=N_BATCH, repeat=5):
     """Median CPU seconds per solve {(kind, path): s}, serial, paths alternating within each repeat."""
     import time
 
-    saved = solver._FAST, solver._CLOSED
+    saved = solver._FAST, solver._CLOSED, solver._MONOMIAL4
     times = {}
     try:
         for kind, (F, kw) in batches(n).items():
-            for name, fast, closed, est in PATHS:  # compile and warm every path first
-                solver._FAST, solver._CLOSED = fast, closed
+            for name, fast, closed, mono4, est in PATHS:  # compile and warm every path first
+                solver._FAST, solver._CLOSED, solver._MONOMIAL4 = fast, closed, mono4
                 ritz.solve_batch(F[:10], **{a: v[:10] for a, v in kw.items()}, parallel=False,
                                  error_estimate=est)
             for _ in range(repeat):
-                for name, fast, closed, est in PATHS:
-                    solver._FAST, solver._CLOSED = fast, closed
+                for name, fast, closed, mono4, est in PATHS:
+                    solver._FAST, solver._CLOSED, solver._MONOMIAL4 = fast, closed, mono4
                     t0 = time.process_time()
                     ritz.solve_batch(F, **kw, parallel=False, error_estimate=est)
                     times.setdefault((kind, name), []).append((time.process_time() - t0) / F.size)
     finally:
-        solver._FAST, solver._CLOSED = saved
+        solver._FAST, solver._CLOSED, solver._MONOMIAL4 = saved
     return {key: float(np.median(v)) for key, v in times.items()}
 
 
@@ -145,14 +148,16 @@ def test_scipy_bfgs_baseline(benchmark):
     benchmark.extra_info["median_us"] = benchmark.stats.stats.median * 1e6
 
 
-@pytest.mark.parametrize("parallel,path", [(False, "closed form, no estimate"), (False, "closed form"),
-                                           (True, "closed form")],
+@pytest.mark.parametrize("parallel,path", [(False, "closed form, no estimate"),
+                                           (False, "closed form, monomial order-4 estimate"),
+                                           (True, "closed form, monomial order-4 estimate")],
                          ids=["batch_serial_no_estimate", "batch_serial", "batch_parallel"])
 def test_batch_throughput(benchmark, monkeypatch, parallel, path):
     """Wall-clock medians of the whole solve_batch call (every parameter random)."""
-    _, fast, closed, est = next(p for p in PATHS if p[0] == path)
+    _, fast, closed, mono4, est = next(p for p in PATHS if p[0] == path)
     monkeypatch.setattr(solver, "_FAST", fast)
     monkeypatch.setattr(solver, "_CLOSED", closed)
+    monkeypatch.setattr(solver, "_MONOMIAL4", mono4)
     F, kw = batches()["all parameters"]
     ritz.solve_batch(F[:10], **{a: v[:10] for a, v in kw.items()}, parallel=parallel, error_estimate=est)
     b = benchmark.pedantic(ritz.solve_batch, args=(F,),
@@ -164,7 +169,7 @@ def test_batch_throughput(benchmark, monkeypatch, parallel, path):
 
 
 def test_batch_cpu_per_core(benchmark):
-    """The per-core table: four kernel paths x two batches, CPU time, alternating in one process."""
+    """The per-core table: five kernel paths x two batches, CPU time, alternating in one process."""
     cpu = benchmark.pedantic(cpu_table, rounds=1, iterations=1)
     _CPU["table"] = cpu
     for (kind, name), s in cpu.items():

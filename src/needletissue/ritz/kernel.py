@@ -833,11 +833,270 @@ def _post3c(c, l, nl, cos_term, tab, eb, es, wk, out, react, fq):
         q += nq
 
 
+# ---- Order 4 for the order-3 error estimate (issue 18) ----
+# The estimate solves order 4 from the order-3 answer. On the Gauss path that solve cost ~80 % of a
+# solve with its estimate, mostly the Legendre basis at the 30 points (_points, per sample) and the
+# array-based Newton. Here the basis is in monomial form, v = s^2 (a + b s + c s^2), evaluated at each
+# point (the points are cheap to place: quartic_points), and the Newton state is in scalars. Same
+# Gauss rule, same iteration: results equal the Gauss path's to round-off. (Order 4 as closed-form
+# moments like order 3 was tried: the forms of degree 8 in (a, b, c) lose up to 8 digits to
+# cancellation when stiff tissue makes a + b s + c s^2 small over the layers, and were slower.)
+_R5 = np.sqrt(5.0)
+# (a, b, c) = x @ _M4 for basis coefficients x (basis.monomial_matrix(4)[:, 2:])
+_M4 = np.array([[0.5, 0.0, 0.0], [-0.5 * _R3, 1.0 / _R3, 0.0], [0.5 * _R5, -_R5, 0.5 * _R5]])
+
+
+@njit(cache=True)
+def quartic_points(l, T, K, z3, cos_term, tab, GX, GW):
+    """tab (3 + 2 Q): phi_0..2(s3), then the Gauss points of the order-4 rule: s, then k * weight * dz/dxi."""
+    il = 1.0 / l
+    s3 = z3 * il
+    s32 = s3 * s3
+    for i in range(3):
+        tab[i] = s32 * (_M4[i, 0] + s3 * (_M4[i, 1] + s3 * _M4[i, 2]))
+    nq = 15 if cos_term else 9
+    nl = T.shape[0]
+    q = 3
+    za = 0.0
+    for j in range(nl):
+        zb = za + T[j]
+        half = 0.5 * (zb - za)
+        for g in range(nq):
+            tab[q] = (za + half * (GX[nq, g] + 1.0)) * il
+            tab[q + nl * nq] = K[j] * half * GW[nq, g]
+            q += 1
+        za = zb
+    return nl * nq
+
+
+@njit(cache=True, fastmath=_FM)
+def _energy4g(x0, x1, x2, tab, n, il, cos_term, kb, F, grad):
+    """Order-4 energy on the Gauss points of quartic_points (basis in monomial form: phi = s^2 (1, s, s^2)
+    in (a, b, c)): (Pi, U_bend, U_spring, work, g (3), H (6: 00 10 11 20 21 22)) in x."""
+    a = x0 * _M4[0, 0] + x1 * _M4[1, 0] + x2 * _M4[2, 0]
+    b = x1 * _M4[1, 1] + x2 * _M4[2, 1]
+    c = x2 * _M4[2, 2]
+    eb = 0.5 * kb * (x0 * x0 + x1 * x1 + x2 * x2)
+    wk = F * (x0 * tab[0] + x1 * tab[1] + x2 * tab[2])
+    es = 0.0
+    o = 3
+    if not grad:
+        for q in range(n):
+            s = tab[o + q]
+            v = s * s * (a + s * (b + s * c))
+            y = v * v
+            if cos_term:
+                d = s * (2.0 * a + s * (3.0 * b + s * 4.0 * c)) * il
+                y *= 1.0 + d * d
+            es += tab[o + n + q] * (0.5 * y + 0.25 * y * y)
+        return eb + es - wk, eb, es, wk, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    ga = gb = gc = 0.0
+    haa = hab = hac = hbb = hbc = hcc = 0.0
+    if cos_term:
+        for q in range(n):
+            s = tab[o + q]
+            w = tab[o + n + q]
+            a0 = s * s  # dv/d(a, b, c) and d(dv/dz)/d(a, b, c)
+            a1 = a0 * s
+            a2 = a1 * s
+            b0 = 2.0 * s * il
+            b1 = 3.0 * a0 * il
+            b2 = 4.0 * a1 * il
+            v = a * a0 + b * a1 + c * a2
+            d = a * b0 + b * b1 + c * b2
+            f = 1.0 + d * d
+            y = v * v * f
+            es += w * (0.5 * y + 0.25 * y * y)
+            ey = 0.5 * w * (1.0 + y)
+            eyy = 0.5 * w
+            yv = 2.0 * v * f
+            yp = 2.0 * v * v * d
+            ev = ey * yv
+            ep = ey * yp
+            evv = eyy * yv * yv + ey * 2.0 * f
+            evp = eyy * yv * yp + ey * 4.0 * v * d
+            epp = eyy * yp * yp + ey * 2.0 * v * v
+            u0 = evv * a0 + evp * b0
+            u1 = evv * a1 + evp * b1
+            u2 = evv * a2 + evp * b2
+            t0 = evp * a0 + epp * b0
+            t1 = evp * a1 + epp * b1
+            t2 = evp * a2 + epp * b2
+            ga += ev * a0 + ep * b0
+            gb += ev * a1 + ep * b1
+            gc += ev * a2 + ep * b2
+            haa += u0 * a0 + t0 * b0
+            hab += u1 * a0 + t1 * b0
+            hbb += u1 * a1 + t1 * b1
+            hac += u2 * a0 + t2 * b0
+            hbc += u2 * a1 + t2 * b1
+            hcc += u2 * a2 + t2 * b2
+    else:
+        for q in range(n):
+            s = tab[o + q]
+            w = tab[o + n + q]
+            a0 = s * s
+            a1 = a0 * s
+            a2 = a1 * s
+            v = a * a0 + b * a1 + c * a2
+            y = v * v
+            es += w * (0.5 * y + 0.25 * y * y)
+            ev = 0.5 * w * (1.0 + y) * 2.0 * v
+            evv = 2.0 * w * v * v + w * (1.0 + y)
+            ga += ev * a0
+            gb += ev * a1
+            gc += ev * a2
+            haa += evv * a0 * a0
+            hab += evv * a1 * a0
+            hbb += evv * a1 * a1
+            hac += evv * a2 * a0
+            hbc += evv * a2 * a1
+            hcc += evv * a2 * a2
+    # chain rule to the basis coefficients: g_x = M g_(a,b,c), H_x = M H M^T, plus bending and load
+    g0 = kb * x0 - F * tab[0] + _M4[0, 0] * ga
+    g1 = kb * x1 - F * tab[1] + _M4[1, 0] * ga + _M4[1, 1] * gb
+    g2 = kb * x2 - F * tab[2] + _M4[2, 0] * ga + _M4[2, 1] * gb + _M4[2, 2] * gc
+    u00 = _M4[0, 0] * haa
+    u10 = _M4[1, 0] * haa + _M4[1, 1] * hab
+    u11 = _M4[1, 0] * hab + _M4[1, 1] * hbb
+    u20 = _M4[2, 0] * haa + _M4[2, 1] * hab + _M4[2, 2] * hac
+    u21 = _M4[2, 0] * hab + _M4[2, 1] * hbb + _M4[2, 2] * hbc
+    u22 = _M4[2, 0] * hac + _M4[2, 1] * hbc + _M4[2, 2] * hcc
+    h00 = kb + u00 * _M4[0, 0]
+    h10 = u10 * _M4[0, 0]
+    h11 = kb + u10 * _M4[1, 0] + u11 * _M4[1, 1]
+    h20 = u20 * _M4[0, 0]
+    h21 = u20 * _M4[1, 0] + u21 * _M4[1, 1]
+    h22 = kb + u20 * _M4[2, 0] + u21 * _M4[2, 1] + u22 * _M4[2, 2]
+    return eb + es - wk, eb, es, wk, g0, g1, g2, h00, h10, h11, h20, h21, h22
+
+
+@njit(cache=True)
+def _chol3(h00, h10, h11, h20, h21, h22, g0, g1, g2, shift):
+    """d = -(H + shift I)^-1 g for n = 3 as L D L^T in scalars: three divisions, no square roots (a
+    chain of 12 divisions and roots cost ~60 ns per step); the positive-definiteness test is
+    _cholesky_solve's (all pivots > 0). (positive definite, d0, d1, d2)."""
+    s0 = h00 + shift
+    if not s0 > 0.0:
+        return False, 0.0, 0.0, 0.0
+    r0 = 1.0 / s0
+    l10 = h10 * r0
+    l20 = h20 * r0
+    s1 = h11 + shift - l10 * h10
+    if not s1 > 0.0:
+        return False, 0.0, 0.0, 0.0
+    r1 = 1.0 / s1
+    e21 = h21 - l20 * h10  # l21 * s1
+    l21 = e21 * r1
+    s2 = h22 + shift - l20 * h20 - l21 * e21
+    if not s2 > 0.0:
+        return False, 0.0, 0.0, 0.0
+    y1 = l10 * g0 - g1
+    y2 = l20 * g0 - l21 * y1 - g2
+    d2 = y2 / s2
+    d1 = y1 * r1 - l21 * d2
+    d0 = -g0 * r0 - l10 * d1 - l20 * d2
+    return True, d0, d1, d2
+
+
+@njit(cache=True)
+def _newton4(c, F, kb, tab, n, il, cos_term):
+    """_newton at p = 4 from c (in place) on _energy4g: the same steps, line search and tests.
+    Returns (iterations, status); FALLBACK (c untouched) when c or the energy leaves the range where
+    both forms are finite (the caller then runs the Gauss path from the same start)."""
+    c0 = c[0]
+    c1 = c[1]
+    c2 = c[2]
+    r = _energy4g(c0, c1, c2, tab, n, il, cos_term, kb, F, True)
+    pi, eb, es, w, g0, g1, g2, h00, h10, h11, h20, h21, h22 = r
+    if not (_safe(c0, c1, es, pi) and abs(c2) <= _C_BIG):
+        return 0, FALLBACK
+    for it in range(_MAXIT):
+        shift = 0.0
+        pd, d0, d1, d2 = _chol3(h00, h10, h11, h20, h21, h22, g0, g1, g2, 0.0)
+        if not pd:
+            shift = 1e-8 * kb
+            while True:
+                ok, d0, d1, d2 = _chol3(h00, h10, h11, h20, h21, h22, g0, g1, g2, shift)
+                if ok:
+                    break
+                shift *= 10.0
+        t0 = c0 + d0
+        t1 = c1 + d1
+        t2 = c2 + d2
+        dn = max(abs(d0), abs(d1), abs(d2))
+        cn = max(abs(t0), abs(t1), abs(t2))
+        slope = g0 * d0 + g1 * d1 + g2 * d2
+        scale = abs(eb) + abs(es) + abs(w) + 1e-300
+        last = pd and (dn <= _RTOL * cn + _ATOL or -slope <= 1e-15 * scale)
+        if last and -slope <= 1e-13 * scale:  # the test below accepts it whatever Pi is there
+            c[0] = t0
+            c[1] = t1
+            c[2] = t2
+            return it + 1, OK
+        r = _energy4g(t0, t1, t2, tab, n, il, cos_term, kb, F, not last)
+        if not (_safe(t0, t1, r[2], r[0]) and abs(t2) <= _C_BIG):
+            return 0, FALLBACK
+        if r[0] <= pi + 1e-4 * slope or -slope <= 1e-13 * scale:
+            c0 = t0
+            c1 = t1
+            c2 = t2
+            if last:
+                c[0] = c0
+                c[1] = c1
+                c[2] = c2
+                return it + 1, OK
+            pi, eb, es, w, g0, g1, g2, h00, h10, h11, h20, h21, h22 = r
+            continue
+        t = 0.5
+        while True:
+            t0 = c0 + t * d0
+            t1 = c1 + t * d1
+            t2 = c2 + t * d2
+            r = _energy4g(t0, t1, t2, tab, n, il, cos_term, kb, F, False)
+            if not (_safe(t0, t1, r[2], r[0]) and abs(t2) <= _C_BIG):
+                return 0, FALLBACK
+            if r[0] <= pi + 1e-4 * t * slope:
+                break
+            t *= 0.5
+            if t < 1e-14:
+                c[0] = c0
+                c[1] = c1
+                c[2] = c2
+                return it, LINE_SEARCH
+        c0 = t0
+        c1 = t1
+        c2 = t2
+        r = _energy4g(c0, c1, c2, tab, n, il, cos_term, kb, F, True)
+        pi, eb, es, w, g0, g1, g2, h00, h10, h11, h20, h21, h22 = r
+        if not (_safe(c0, c1, es, pi) and abs(c2) <= _C_BIG):
+            return 0, FALLBACK
+    c[0] = c0
+    c[1] = c1
+    c[2] = c2
+    return _MAXIT, MAX_ITER
+
+
+
+@njit(cache=True)
+def _sup4(x0, x1, x2, grid):
+    """max over the grid of |v| for order-4 basis coefficients x, in monomial form (vectorised)."""
+    a = x0 * _M4[0, 0] + x1 * _M4[1, 0] + x2 * _M4[2, 0]
+    b = x1 * _M4[1, 1] + x2 * _M4[2, 1]
+    c = x2 * _M4[2, 2]
+    e = 0.0
+    for k in range(grid.shape[0]):
+        s = grid[k]
+        e = max(e, abs(s * s * (a + s * (b + s * c))))
+    return e
+
+
 def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
-                 A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate):
+                 A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate, mono4):
     """Samples start..stop-1. The model arrays KB, L, Z3, T, K have one row per sample, or a single
     row that every sample shares (a batch that varies the force only). closed: order 3 through the
-    closed-form energy (cubic_table); estimate: also solve order p + 1 for error_estimate (else NaN)."""
+    closed-form energy (cubic_table); estimate: also solve order p + 1 for error_estimate (else NaN);
+    mono4: with closed, the order-4 solve of the order-3 estimate through _newton4 (else Gauss path)."""
     nl = T.shape[1]
     wk = _workspace(pmax + 1, nl)
     c = np.zeros(pmax)
@@ -849,8 +1108,12 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
     out = np.full(NCOLS, np.nan)  # one sample's scalars (NaN where a failed sample has none)
     shared = L.shape[0] == 1
     cubic = closed and order == 3
+    tab4 = np.empty(3 + 2 * max(nl, 1) * 15)
+    n4 = 0
     if cubic and shared:
         cubic_table(L[0], T[0], K[0], Z3[0], cos_term, tab, mu, GX, GW)
+        if estimate and mono4:
+            n4 = quartic_points(L[0], T[0], K[0], Z3[0], cos_term, tab4, GX, GW)
     for m in range(start, stop):
         g = 0 if shared else m
         for i in range(pmax):
@@ -875,17 +1138,26 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
             for i in range(pmax):
                 c2[i] = c[i]
             c2[p - 1] = 0.0
-            it2, st2 = _newton_any(p + 1, c2, F[m], KB[g], L[g], Z3[g], T[g], K[g], cos_term,
-                                   A, Ad, GX, GW, wk, fast)
+            st2 = FALLBACK
+            if cubic and mono4 and p == 3:  # order 4 in monomial form, scalar state
+                if not shared:
+                    n4 = quartic_points(L[g], T[g], K[g], Z3[g], cos_term, tab4, GX, GW)
+                it2, st2 = _newton4(c2, F[m], KB[g], tab4, n4, 1.0 / L[g], cos_term)
+            if st2 == FALLBACK:
+                it2, st2 = _newton_any(p + 1, c2, F[m], KB[g], L[g], Z3[g], T[g], K[g], cos_term,
+                                       A, Ad, GX, GW, wk, fast)
             if st2 != OK:
                 st = st2
                 break
-            est = 0.0
-            for k in range(grid.shape[0]):
-                dv = c2[p - 1] * gphi[k, p - 1]
-                for i in range(p - 1):
-                    dv += (c2[i] - c[i]) * gphi[k, i]
-                est = max(est, abs(dv))
+            if cubic and mono4 and p == 3:
+                est = _sup4(c2[0] - c[0], c2[1] - c[1], c2[2], grid)
+            else:
+                est = 0.0
+                for k in range(grid.shape[0]):
+                    dv = c2[p - 1] * gphi[k, p - 1]
+                    for i in range(p - 1):
+                        dv += (c2[i] - c[i]) * gphi[k, i]
+                    est = max(est, abs(dv))
             if not auto:
                 break
             # auto: stop when the changes to AND from order p are both below tol (one small change
@@ -920,7 +1192,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
 
 
 def _solve_all(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, A, Ad, GX, GW, grid, gphi,
-               C, S, R, chunks, fast, closed, estimate):
+               C, S, R, chunks, fast, closed, estimate, mono4):
     N = F.shape[0]
     size = (N + chunks - 1) // chunks
     for b in prange(chunks):
@@ -928,7 +1200,7 @@ def _solve_all(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, A, Ad, GX, 
         stop = min(N, start + size)
         if start < stop:
             _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
-                         A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate)
+                         A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate, mono4)
 
 
 _solve_range = njit(cache=True)(_solve_range)

@@ -28,6 +28,9 @@ _FAST = True
 # With _FAST, order 3 through its closed-form energy (kernel.cubic_table; issue 18). False keeps the
 # unrolled Gauss-point path for order 3 (the previous version, for the tests and the benchmark).
 _CLOSED = True
+# With _CLOSED, the order-4 solve behind the order-3 error estimate with the basis in monomial form
+# (kernel._newton4). False: that solve on the unrolled Gauss path (the previous version).
+_MONOMIAL4 = True
 
 
 @dataclass(frozen=True)
@@ -229,7 +232,7 @@ def _run(F, KB, L, Z3, T, K, cos_term, order, auto, max_order, tol, parallel, es
     else:
         fn, chunks = kernel.solve_serial, 1
     fn(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, *_TABLES, C, S, R, chunks, _FAST,
-       _FAST and _CLOSED, estimate)
+       _FAST and _CLOSED, estimate, _MONOMIAL4)
     status = S[kernel.STATUS]
     if status.any():
         bad = np.flatnonzero(status != kernel.OK)
