@@ -445,6 +445,12 @@ def relocate_nodes(points, cells, fixed, target_deg: float = 12.0, rounds: int =
     return x, moved
 
 
+def _faces_with(cell, w):
+    """The three faces of a tetrahedron (4 node ids) that contain node w."""
+    c = [int(v) for v in cell]
+    return [[c[j] for j in range(4) if j != k] for k in range(4) if c[k] != w]
+
+
 def _triangulations(n: int) -> list[list[tuple[int, int, int]]]:
     """All triangulations of the convex polygon 0..n-1 (triangles in ring order)."""
     def rec(i, j):
@@ -468,7 +474,9 @@ def remove_slivers(points, cells, tag, target_deg: float = 12.0, max_shift: floa
       given to a tissue across one of its faces (an interface edge flip: the interface moves by at most
       that height), or, with two faces on the free boundary, cutting it off (unless that pinches an edge);
     - if none of these improves: splitting an edge that has no interface / boundary face at a new node
-      placed (mean of the edge, `samples` seeded random points) to maximise its star's worst angle.
+      placed (mean of the edge, `samples` seeded random points) to maximise its star's worst angle;
+    - else collapsing an edge no longer than `max_shift` (link condition checked; the nodes merge at one
+      end or the middle, so an interface moves by at most that length).
     An operation is kept only if the worst new element beats the worst one it replaces (all positive),
     so the minimum angle never drops. Returns (points, cells, tag, number of operations), nodes compacted."""
     from itertools import combinations
@@ -566,7 +574,8 @@ def remove_slivers(points, cells, tag, target_deg: float = 12.0, max_shift: floa
                 continue
             ring, cyc = rc
             for tri in RING_TRIANGULATIONS[len(ring)]:   # ring counter-clockwise seen from v
-                new = [[cyc[p], cyc[q], cyc[r], v] for p, q, r in tri] + [[cyc[p], cyc[r], cyc[q], u] for p, q, r in tri]
+                new = ([[cyc[p], cyc[q], cyc[r], v] for p, q, r in tri]
+                       + [[cyc[p], cyc[r], cyc[q], u] for p, q, r in tri])
                 out.append((ring, np.array(new)))
         return out
 
@@ -592,6 +601,42 @@ def remove_slivers(points, cells, tag, target_deg: float = 12.0, max_shift: floa
             k = int(np.argmax(score))
             if score[k] - md[ring].min() > best[0]:
                 best = (score[k] - md[ring].min(), ring, new, cand[k], q[k])
+        return best
+
+    def collapse(t):
+        """(gain, old elements, new cells, kept node, its new position, angles, tags) of the best collapse of an edge
+        of t no longer than max_shift (the two nodes merge at one end or the middle); the link condition
+        keeps the complex's topology, and the free boundary may only be collapsed along its edges."""
+        a = [int(w) for w in C[t]]
+        best = (0.0, None)
+        for u, v in combinations(a, 2):
+            if np.linalg.norm(x[u] - x[v]) > max_shift:
+                continue
+            su, sv = star(u), star(v)
+            both = su & sv
+            link_e = {frozenset(w for w in C[e] if w != u and w != v) for e in both}
+            pu = {frozenset(w for w in f if w != u) for e in su - both for f in _faces_with(C[e], u)}
+            pv = {frozenset(w for w in f if w != v) for e in sv - both for f in _faces_with(C[e], v)}
+            nu = set(C[list(su)].ravel().tolist()) - {u, v}
+            nv = set(C[list(sv)].ravel().tolist()) - {u, v}
+            if (pu & pv) - link_e or (nu & nv) != set().union(*link_e):
+                continue
+            on_b = [any(len(face_elems(f)) == 1 for e in st for f in _faces_with(C[e], w))
+                    for w, st in ((u, su), (v, sv))]
+            if on_b[0] and on_b[1] and not any(len(face_elems([u, v, int(w)])) == 1
+                                               for e in both for w in C[e] if w != u and w != v):
+                continue
+            old = list(su | sv)
+            keep = [e for e in old if e not in both]
+            new = C[keep].copy()
+            new[new == v] = u
+            for pos in (x[u], x[v], 0.5 * (x[u] + x[v])):
+                P = x[new]
+                P[new == u] = pos
+                vol, q = vol_min_dihedral(P)
+                g = (q.min() if (vol > 0).all() else -1.0) - md[old].min()
+                if g > best[0]:
+                    best = (g, old, new, u, pos, q, T[keep])
         return best
 
     n_ops = 0
@@ -642,7 +687,14 @@ def remove_slivers(points, cells, tag, target_deg: float = 12.0, max_shift: floa
                     if s_i[0] > sp[0]:
                         sp, tg = s_i, tgi
                 T[t] = own
-                if sp[1] is None:
+                if sp[1] is None:                # last resort: collapse a short edge
+                    cl = collapse(t) if max_shift > 0 else (0.0, None)
+                    if cl[1] is None:
+                        continue
+                    _, old, new, u, x[u], qn, tg = cl
+                    remove(old)
+                    add(new, tg, qn)
+                    n_pass += 1
                     continue
                 if n_x == len(x):
                     x = np.vstack([x, np.zeros((max(64, n_x // 50), 3))])
@@ -669,7 +721,7 @@ OPTIMIZE_METHODS = ("",)    # gmsh optimisers per pass ("": gmsh's own tetrahedr
 SLIDE = True               # interface nodes may slide in their tangent plane during relocation
 SLIDE_MAX_DEVIATION = 35.0  # degrees; surface nodes whose faces deviate more from their mean normal stay put
 SLIVER_TARGET = 12.0        # degrees; remove_slivers works on elements below this (goal: 10)
-SLIVER_SHIFT = 1 / 6        # x voxel: a flat element this thin may change tissue (its interface moves that much)
+SLIVER_SHIFT = 1 / 3        # x voxel: a flat element this thin may change tissue (its interface moves that much)
 
 
 def smooth_tet_mesh(seg, cfg):
