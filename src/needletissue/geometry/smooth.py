@@ -335,6 +335,13 @@ def gmsh_optimize(points: np.ndarray, cells: np.ndarray, tag: np.ndarray, thresh
     return X[used], inv.reshape(c.shape), np.concatenate(out_t)
 
 
+def signed_volume(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Signed volume of each tetrahedron (tet_quality's sign convention); 20x cheaper than tet_quality."""
+    p0 = points[cells[:, 0]]
+    return np.einsum("ij,ij->i", np.cross(points[cells[:, 1]] - p0, points[cells[:, 2]] - p0),
+                     points[cells[:, 3]] - p0) / 6.0
+
+
 def vol_min_dihedral(P: np.ndarray):
     """Signed volume and smallest dihedral angle (deg) of tetrahedra given as corner arrays (..., 4, 3);
     the part of tetmesh.tet_quality the node relocation needs, on any leading shape."""
@@ -729,7 +736,7 @@ def smooth_tet_mesh(seg, cfg):
     import time
 
     from needletissue.geometry.tetmesh import (TetMesh, _crop_and_coarsen, _grid_frame, bone_surfaces_by_bone,
-                                               face_pairs, interface_surfaces, regular_tet_volume, tet_quality,
+                                               face_pairs, interface_surfaces, regular_tet_volume,
                                                unique_rows)
     from needletissue.imaging.segment import material_for
 
@@ -751,7 +758,7 @@ def smooth_tet_mesh(seg, cfg):
     t2 = time.perf_counter()
     cpu.append(time.process_time())
     # tissue per TetGen subdomain: volume-weighted majority of the labels at its tetrahedra's centroids
-    vol = np.abs(tet_quality(nodes, elem)["volume"])
+    vol = np.abs(signed_volume(nodes, elem))
     cen = nodes[elem].mean(1)
     shape = np.asarray(arr.shape[::-1])
     ijk = np.clip(np.floor(cen / sp + 0.5).astype(int), 0, shape - 1)
@@ -773,7 +780,7 @@ def smooth_tet_mesh(seg, cfg):
         nodes, cells, tag = gmsh_optimize(nodes, cells, tag, OPTIMIZE_THRESHOLD)
     t4 = time.perf_counter()
     cpu.append(time.process_time())
-    v = tet_quality(nodes, cells)["volume"]
+    v = signed_volume(nodes, cells)
     cells[v < 0] = cells[v < 0][:, [0, 2, 1, 3]]  # positive orientation (in grid coordinates)
     inter, free, faces = face_pairs(cells, tag)
     bnd = np.concatenate([inter, free])
