@@ -19,8 +19,12 @@ Route (one path from the label map to the mesh, `tet_mesh(..., method="smooth")`
    relocation of the nodes of elements below 12 deg (relocate_nodes); interior nodes move freely, nodes
    on a smooth patch of one interface slide in its tangent plane (sliding_normals), because the worst
    elements have all four nodes on interfaces (measured on the CT);
-7. bone split back into cortical / cancellous per tetrahedron (the split is a rule, see imaging.segment),
-   after step 6: the split is no interface, so its element-staircase nodes are free during step 6.
+7. sliver removal (remove_slivers): what step 6 leaves below the goal are flat elements capping an
+   interface edge; 2-3 flips and edge removals within one tissue, a flat element (<= 1/3 voxel thick)
+   handed to the tissue across its interface (an interface edge flip), interior edge splits and, last,
+   collapses of edges <= 1/3 voxel;
+8. bone split back into cortical / cancellous per tetrahedron (the split is a rule, see imaging.segment),
+   after steps 6-7: the split is no interface, so its element-staircase nodes are free during them.
 See docs/imaging.md for the measured quality and fidelity.
 """
 
