@@ -7,8 +7,8 @@ import pytest
 from labelmaps import ball, make_seg, nested_boxes
 from needletissue.errors import InputError
 from needletissue.geometry.fidelity import mesh_fidelity
-from needletissue.geometry.smooth import (edge_face_crossings, fix_edge_contacts, relocate_nodes, sliding_normals,
-                                          unique_edges, vol_min_dihedral)
+from needletissue.geometry.smooth import (RING_TRIANGULATIONS, edge_face_crossings, fix_edge_contacts, relocate_nodes,
+                                          remove_slivers, sliding_normals, unique_edges, vol_min_dihedral)
 from needletissue.geometry.tetmesh import MeshConfig, face_pairs, tet_mesh, tet_quality, unique_rows
 
 H = 2.0                                    # mm voxels
@@ -209,3 +209,101 @@ def test_relocation_slides_a_boundary_node_back_in_its_plane():
     assert moved >= 1 and (vol > 0).all() and md.min() > 2 * best[1]
     assert z[v, 2] == pytest.approx(0.0, abs=1e-12)                # it stayed on the face z = 0
     assert np.array_equal(z[fixed & np.isnan(slide[:, 0])], y[fixed & np.isnan(slide[:, 0])])
+
+
+def test_ring_triangulations_are_the_catalan_numbers_of_distinct_diagonals():
+    for n, tris in RING_TRIANGULATIONS.items():
+        assert len(tris) == [1, 2, 5, 14, 42][n - 3]
+        assert len({frozenset(t) for t in tris}) == len(tris) and all(len(t) == n - 2 for t in tris)
+
+
+def _slivered_two_tissue_box(n_slivers=12, seed=0, on_interface=False):
+    """TetGen box (10 mm, elements <= 1 mm^3), two tissues split at x = 5 by element centroid, and interior
+    nodes (on no interface; or on the interface, dragged within its x-plane) moved until one of their elements
+    is below 3 deg."""
+    import pyvista as pv
+    import tetgen
+
+    box = pv.Box(bounds=(0, 10, 0, 10, 0, 10), level=3).triangulate()
+    tg = tetgen.TetGen(np.asarray(box.points, float), box.regular_faces.astype(np.int32))
+    x, c = tg.tetrahedralize(quality=True, minratio=1.5, fixedvolume=True, maxvolume=1.0, quiet=True)[:2]
+    x, c = np.asarray(x, float), np.asarray(c, np.int64)[:, :4]
+    v = tet_quality(x, c)["volume"]
+    c[v < 0] = c[v < 0][:, [0, 2, 1, 3]]
+    tag = np.where(x[c].mean(1)[:, 0] < 5.0, 1, 2)
+    inter, free, faces = face_pairs(c, tag)
+    on = np.zeros(len(x), bool)
+    on[np.unique(faces[np.concatenate([inter, free])])] = True
+    on_free = np.zeros(len(x), bool)
+    on_free[np.unique(faces[free])] = True
+    pick = on & ~on_free & np.isin(x[:, 0], np.unique(x[faces[inter]][..., 0])) if on_interface else ~on
+    rng = np.random.default_rng(seed)
+    k = 0
+    for node in rng.permutation(np.flatnonzero(pick)):
+        st = np.flatnonzero((c == node).any(1))
+        best = None
+        for d in rng.normal(scale=0.8, size=(400, 3)) * ([0, 1, 1] if on_interface else 1):
+            vol, md = vol_min_dihedral(np.where(c[st, :, None] == node, x[node] + d, x[c[st]]))
+            if (vol > 0).all() and (best is None or md.min() < best[1]):
+                best = (x[node] + d, md.min())
+        if best[1] < 3.0:
+            x[node] = best[0]
+            k += 1
+        if k == n_slivers:
+            break
+    return x, c, tag
+
+
+def _surface_triangles(x, c, tag):
+    inter, free, faces = face_pairs(c, tag)
+    f = faces[np.concatenate([inter, free])]
+    return {tuple(sorted(map(tuple, np.round(x[t], 9)))) for t in f}
+
+
+def _check_complex(x, c):
+    vol = vol_min_dihedral(x[c])[0]
+    _, _, cnt = unique_rows(np.sort(np.concatenate([c[:, [1, 2, 3]], c[:, [0, 2, 3]], c[:, [0, 1, 3]],
+                                                    c[:, [0, 1, 2]]]), axis=1))
+    assert (vol > 0).all() and cnt.max() == 2                  # positive, no face in three elements
+    assert np.array_equal(np.unique(c), np.arange(len(x)))     # every node used, none duplicated
+
+
+def test_remove_slivers_within_tissues_keeps_interfaces_and_volumes():
+    x, c, tag = _slivered_two_tissue_box()
+    vol0, md0 = vol_min_dihedral(x[c])
+    assert md0.min() < 3.0 and (md0 < 10).sum() >= 12
+    y, c2, t2, n_ops = remove_slivers(x, c, tag, target_deg=12.0, max_shift=0.0)
+    vol, md = vol_min_dihedral(y[c2])
+    _check_complex(y, c2)
+    assert n_ops > 0 and md.min() >= 5.0 and (md < 10).sum() <= 3      # no sliver left (was 12 below 3 deg)
+    for k in (1, 2):                                                   # no element changed tissue
+        assert vol[t2 == k].sum() == pytest.approx(vol0[tag == k].sum(), rel=1e-12)
+    assert _surface_triangles(y, c2, t2) == _surface_triangles(x, c, tag)   # interfaces and boundary intact
+    assert np.array_equal(y[:len(x)], x)                                 # no node moved (splits append)
+
+
+def _interface_distance(x, c, tag, y, c2, t2):
+    """Largest distance of the new interfaces' vertices and centroids from the old interfaces (sampled)."""
+    from scipy.spatial import cKDTree
+
+    inter, _, faces = face_pairs(c, tag)
+    w = np.random.default_rng(0).dirichlet(np.ones(3), 3000)
+    old = np.einsum("sk,fkd->fsd", w, x[faces[inter]]).reshape(-1, 3)
+    inter, _, faces = face_pairs(c2, t2)
+    new = np.vstack([y[faces[inter]].reshape(-1, 3), y[faces[inter]].mean(1)])
+    return cKDTree(old).query(new)[0].max()
+
+
+def test_remove_slivers_may_move_an_interface_by_at_most_max_shift():
+    x, c, tag = _slivered_two_tissue_box(n_slivers=20, seed=2)
+    md0 = vol_min_dihedral(x[c])[1]
+    runs = {shift: remove_slivers(x, c, tag, target_deg=15.0, max_shift=shift) for shift in (0.0, 0.3, 3.0)}
+    md = {s: vol_min_dihedral(r[0][r[1]])[1] for s, r in runs.items()}
+    for y, c2, _, _ in runs.values():
+        _check_complex(y, c2)
+    assert md0.min() < 0.01 and md[0.0].min() > 1.0     # some slivers need an interface move
+    assert (md[0.3] < 5).sum() < (md[0.0] < 5).sum() and md[3.0].min() >= 15.0
+    floor = _interface_distance(x, c, tag, *runs[0.0][:3])        # interfaces unchanged: the sampling gap
+    assert floor < 0.04
+    assert floor + 0.03 < _interface_distance(x, c, tag, *runs[0.3][:3]) <= 0.3 + floor
+    assert _interface_distance(x, c, tag, *runs[3.0][:3]) > 0.3 + floor     # the bound is what limits it
