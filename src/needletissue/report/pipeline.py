@@ -103,67 +103,30 @@ class Stage:
     # Run in a child process: a crash in native code (mesher, sparse solver, VTK) then fails this
     # stage only instead of the whole run. The function must be importable (module level).
     isolated: bool = False
-    # Isolated and reads no other stage's result: started in its child process before the first stage,
-    # running beside the stages listed before it (the longest stage on the second core). The stages
-    # after it still see its result: the run waits for it when the list reaches it.
-    early: bool = False
-
-
-class _Isolated:
-    """A stage running in its own child process; done() gives its result, or raises."""
-
-    def __init__(self, stage: Stage, cfg: ReproduceConfig, ctx: "StageContext", on_done=None):
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-
-        # Native libraries (ITK, VTK) may reset SIGPIPE to its default; a child that dies would then
-        # kill this process through the closed pipe instead of raising BrokenProcessPool.
-        signal.signal(signal.SIGPIPE, signal.SIG_IGN)
-        self.stage = stage
-        self.t0 = time.perf_counter()
-        self.t1 = None
-        self.pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"))
-        self.fut = self.pool.submit(_run_noting_warnings, stage.run, cfg,
-                                    StageContext(ctx.run_dir, ctx.ct, ctx.labels))
-        self.fut.add_done_callback(lambda f: self._done(on_done))
-
-    def _done(self, on_done):
-        self.t1 = time.perf_counter()  # when the child finished, not when the run asked for it
-        if on_done is not None:
-            on_done(self)
-
-    def result(self) -> StageResult:
-        from concurrent.futures.process import BrokenProcessPool
-
-        try:
-            res = self.fut.result()  # interrupted here: the caller stop()s the worker
-        except BrokenProcessPool:
-            self.pool.shutdown(wait=True, cancel_futures=True)
-            raise RuntimeError(f"the {self.stage.name} stage's process died (a crash in native code, e.g. a "
-                               "segmentation fault, or killed for memory)") from None
-        except Exception:
-            self.pool.shutdown(wait=True, cancel_futures=True)
-            raise
-        self.pool.shutdown(wait=True, cancel_futures=True)
-        return res
-
-    @property
-    def seconds(self) -> float:
-        return (self.t1 or time.perf_counter()) - self.t0
-
-    def stop(self) -> None:
-        """Interrupted (SIGINT/SIGTERM): stop the worker, do not wait for its result."""
-        stop_workers(self.pool)
-        self.pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _run_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext") -> StageResult:
-    job = _Isolated(stage, cfg, ctx)
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    # Native libraries (ITK, VTK) may reset SIGPIPE to its default; a child that dies would then
+    # kill this process through the closed pipe instead of raising BrokenProcessPool.
+    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"))
     try:
-        return job.result()
-    except BaseException:
-        job.stop()
+        fut = pool.submit(_run_noting_warnings, stage.run, cfg, StageContext(ctx.run_dir, ctx.ct, ctx.labels))
+        try:
+            return fut.result()
+        except BrokenProcessPool:
+            raise RuntimeError(f"the {stage.name} stage's process died (a crash in native code, e.g. a "
+                               "segmentation fault, or killed for memory)") from None
+    except BaseException:  # interrupted (SIGINT/SIGTERM): stop the worker, do not wait for its result
+        stop_workers(pool)
         raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _run_noting_warnings(run, cfg, ctx) -> StageResult:
@@ -275,19 +238,29 @@ def _stages(cfg, out, tmp, stages, ct, labels, progress, t0, outcomes, write_rep
     from needletissue.report.html import comparison_markdown
 
     ctx = StageContext(run_dir=tmp, ct=ct, labels=labels)
-    early: dict[str, _Isolated] = {}
     with _StageProgress(stages, progress) as bar:
-        try:
-            for stage in stages:
-                if stage.early and stage.isolated and stage.enabled(cfg, ctx)[0]:
-                    bar.start(stage)
-                    early[stage.name] = _Isolated(stage, cfg, ctx, on_done=lambda j: bar.stop_clock(j.stage))
-            for stage in stages:
-                _run_stage(stage, cfg, ctx, early.pop(stage.name, None), outcomes, bar)
-        except BaseException:  # interrupted: stop what still runs beside
-            for job in early.values():
-                job.stop()
-            raise
+        for stage in stages:
+            on, reason = stage.enabled(cfg, ctx)
+            if not on:
+                outcomes.append(StageOutcome(stage.name, stage.title, "skipped", 0.0, reason))
+                bar.finish(stage, "skipped", reason)
+                continue
+            bar.start(stage)
+            ts = time.perf_counter()
+            try:
+                res = (_run_isolated(stage, cfg, ctx) if stage.isolated
+                       else _run_noting_warnings(stage.run, cfg, ctx))
+            except Exception as exc:  # a failed stage is reported; the others still run
+                dt = time.perf_counter() - ts
+                msg = f"{type(exc).__name__}: {exc}"
+                outcomes.append(StageOutcome(stage.name, stage.title, "failed", dt,
+                                             msg + "\n" + traceback.format_exc(limit=6)))
+                bar.finish(stage, "failed", msg)
+                continue
+            dt = time.perf_counter() - ts
+            ctx.previous[stage.name] = res
+            outcomes.append(StageOutcome(stage.name, stage.title, "ok", dt, result=res))
+            bar.finish(stage, "ok", f"{dt:.1f} s")
     _attach_reasons(outcomes)
     result = ReproduceResult(out, outcomes, time.perf_counter() - t0)
     write_atomic(tmp / "config.toml", annotated_toml(cfg))
@@ -299,38 +272,6 @@ def _stages(cfg, out, tmp, stages, ct, labels, progress, t0, outcomes, write_rep
     write_atomic(tmp / MARKER, f"complete {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
     _swap(tmp, out)
     return result
-
-
-def _run_stage(stage: Stage, cfg, ctx: StageContext, job: "_Isolated | None", outcomes: list, bar) -> None:
-    """One stage (or the result of an early one, job), its outcome appended; a failure is reported and
-    the others still run. Its time is its own wall time, from start to end, also when others ran beside."""
-    if job is None:
-        on, reason = stage.enabled(cfg, ctx)
-        if not on:
-            outcomes.append(StageOutcome(stage.name, stage.title, "skipped", 0.0, reason))
-            bar.finish(stage, "skipped", reason)
-            return
-        bar.start(stage)
-    ts = time.perf_counter()
-    try:
-        if job is not None:
-            res = job.result()
-        elif stage.isolated:
-            res = _run_isolated(stage, cfg, ctx)
-        else:
-            res = _run_noting_warnings(stage.run, cfg, ctx)
-        status, text = "ok", ""
-    except Exception as exc:
-        res, status, text = None, "failed", f"{type(exc).__name__}: {exc}"
-        tb = traceback.format_exc(limit=6)
-    dt = job.seconds if job is not None else time.perf_counter() - ts
-    if res is None:
-        outcomes.append(StageOutcome(stage.name, stage.title, status, dt, text + "\n" + tb))
-        bar.finish(stage, status, text)
-        return
-    ctx.previous[stage.name] = res
-    outcomes.append(StageOutcome(stage.name, stage.title, status, dt, result=res))
-    bar.finish(stage, status, f"{dt:.1f} s")
 
 
 NO_REASON = "reason not measured in this run (the reconciliation stage did not run or has no measurement for this row)"
@@ -382,7 +323,6 @@ class _StageProgress:
 
     def __init__(self, stages: list[Stage], enabled: bool):
         self.p = None
-        self.stopped: set[str] = set()
         if enabled:
             from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
@@ -405,20 +345,11 @@ class _StageProgress:
             self.p.start_task(self.ids[stage.name])
             self.p.update(self.ids[stage.name], status="[yellow]running")
 
-    def stop_clock(self, stage: Stage):
-        """An early stage's child has finished (called from the pool's thread; Rich locks): its elapsed
-        column stops there, not when the run gets to its result."""
-        if self.p:
-            self.stopped.add(stage.name)
-            self.p.stop_task(self.ids[stage.name])
-
     def finish(self, stage: Stage, status: str, text: str):
         if self.p:
             colour = {"ok": "green", "skipped": "dim", "failed": "red"}[status]
             from rich.markup import escape
 
             short = escape(text.splitlines()[0][:60]) if text else ""
-            tid = self.ids[stage.name]
-            self.p.update(tid, completed=1, status=f"[{colour}]{status}[/{colour}] {short}")
-            if stage.name not in self.stopped:  # an early stage's clock stopped when it ended
-                self.p.stop_task(tid)
+            self.p.update(self.ids[stage.name], completed=1, status=f"[{colour}]{status}[/{colour}] {short}")
+            self.p.stop_task(self.ids[stage.name])

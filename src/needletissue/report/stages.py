@@ -486,8 +486,7 @@ def stage_list() -> list[Stage]:
               _on("traction")),
         Stage("ritz", "Ritz model, 100-300 N (Fig. 5)", ritz_stage, _on("ritz")),
         Stage("needle_fe", "Needle FE model, theory vs FE", needle_fe_stage, _on("needle_fe"), isolated=True),
-        # the longest stage: started first, in its own process beside the others
-        Stage("pelvis", "Anatomical pelvis model", pelvis_stage, _pelvis_enabled, isolated=True, early=True),
+        Stage("pelvis", "Anatomical pelvis model", pelvis_stage, _pelvis_enabled, isolated=True),
         # after every stage whose rows it explains; cheap (frame and Ritz solves, no FE)
         Stage("reconciliation", "Reconciliation with the paper", reconciliation_stage,
               lambda cfg, ctx: (True, "") if cfg.ritz.enabled else
