@@ -111,23 +111,25 @@ class _Bodies:
         return upper, mats
 
     def _build(self, mats):
+        import scipy.sparse as sp
+
         n1 = len(self.dof1)
+        union = sum(sp.csr_matrix((np.ones(K.nnz), K.indices, K.indptr), shape=(self.n, self.n)) for K in mats)
+        upper = sp.triu(union[self.dof1][:, self.dof1], format="csr")  # CSR order: sorted row * n1 + col
+        upper.sort_indices()
+        self.indptr, self.indices = upper.indptr.astype(np.int32), upper.indices.astype(np.int32)
+        slots = np.repeat(np.arange(n1, dtype=np.int64), np.diff(upper.indptr)) * n1 + upper.indices
         free = np.full(self.n, -1, np.int64)
         free[self.dof1] = np.arange(n1)
-        keys = []
+        where = []
         for K in mats:
             r = free[np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))]
             c = free[K.indices]
-            keys.append(np.where((r >= 0) & (c >= r), r * n1 + c, -1))
-        uniq, where = np.unique(np.concatenate(keys), return_inverse=True)
-        if uniq[0] == -1:  # slot 0 collects the values outside K11's upper triangle
-            uniq = uniq[1:]
-        else:
-            where += 1
-        rows, cols = np.divmod(uniq, n1)
-        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n1))]).astype(np.int32)
-        self.indices = cols.astype(np.int32)
-        self.where = where.astype(np.intp)
+            keep = (r >= 0) & (c >= r)
+            w = np.zeros(K.nnz, np.intp)  # slot 0 collects the values outside K11's upper triangle
+            w[keep] = np.searchsorted(slots, r[keep] * n1 + c[keep]) + 1
+            where.append(w)
+        self.where = np.concatenate(where)
         self.patterns = [(K.indptr.copy(), K.indices.copy()) for K in mats]
 
     def solve(self, A, b, x, dof1, dof0, ext0, solver):
