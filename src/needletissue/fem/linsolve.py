@@ -319,6 +319,29 @@ def _mkl_rt_path():
         os.environ["PYPARDISO_MKL_RT"] = str(found[0].resolve())
 
 
+# Pardiso on one MKL thread up to this many free dofs (unless MKL_NUM_THREADS is set): on the shared
+# 2-core machine the one-needle model (37,677 dofs) took CPU 20.0 s with one thread against 24.2 s with
+# two, wall 40.3 vs 48.2 s (medians of 2, docs/bench.md); FEBio was faster on one thread too.
+PARDISO_ONE_THREAD_MAX_DOFS = 100_000
+
+
+def thread_limits(name: str, ndof: int):
+    """Context for a solve: OpenBLAS on one thread (single_threaded_openblas), and MKL's Pardiso on
+    one thread for systems up to PARDISO_ONE_THREAD_MAX_DOFS free dofs unless MKL_NUM_THREADS is set."""
+    import os
+    from contextlib import ExitStack
+
+    stack = ExitStack()
+    stack.enter_context(single_threaded_openblas())
+    if name == "pardiso" and ndof <= PARDISO_ONE_THREAD_MAX_DOFS and "MKL_NUM_THREADS" not in os.environ:
+        try:
+            from threadpoolctl import ThreadpoolController
+        except ImportError:
+            return stack
+        stack.enter_context(ThreadpoolController().select(internal_api="mkl").limit(limits=1))
+    return stack
+
+
 def single_threaded_openblas():
     """Context: OpenBLAS (NumPy/SciPy) on one thread. Its threads spin on the many short vector
     operations of CG/AMG and assembly: on the shared 2-core machine a 13k-vector norm took 256 us

@@ -367,7 +367,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     newton_s = 0.0
     norms: list[list[float]] = []
     out = []
-    with bar if progress else nullcontext(), linsolve.single_threaded_openblas(), closing(linear):
+    with bar if progress else nullcontext(), linsolve.thread_limits(name, len(loads.dof1)), closing(linear):
         for target in lams:
             while lam < target * (1 - 1e-12):
                 # equal sub-steps no larger than the allowed increment (no tiny remainders)
