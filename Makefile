@@ -25,9 +25,12 @@ test: $(STAMP)
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
 
+# the version the FE benchmark compares with (before the issue-18 solver changes)
+BENCH_PREVIOUS ?= efc877e
+
 bench: $(STAMP)
 	$(BIN)/python -m pytest -q benchmarks/ --benchmark-only -p no:cacheprovider
-	$(BIN)/python benchmarks/bench_fe_needle.py --repeat 2 --write-docs  # refreshes docs/bench.md
+	$(BIN)/python benchmarks/bench_fe_needle.py --previous $(BENCH_PREVIOUS) --repeat 2 --write-docs  # refreshes docs/bench.md
 
 clean:
 	rm -rf $(VENV) results/ .pytest_cache

@@ -1,18 +1,17 @@
 """The one-needle model of issue 18 (`fe needle --needles 1`, 100/200/300 N, 8,972 tet10, 37,677 free
-dofs): wall, CPU, linear-solve time, Newton iterations and peak memory, previous vs current solver
-settings, back to back, each run in its own process (honest peak RSS).
+dofs): wall, CPU, linear-solve time, Newton iterations and peak memory of this version against a
+previous one, back to back, each run in its own process (honest peak RSS).
 
-    nice python benchmarks/bench_fe_needle.py [--repeat 2] [--write-docs]
+    nice python benchmarks/bench_fe_needle.py [--previous REF] [--repeat 2] [--write-docs]
 
 The mesh is made once (gmsh, deterministic) and every run solves it from scratch. Variants:
-- previous: Pardiso analysed at every Newton iteration (linsolve.REUSE_ANALYSIS = False), plain Newton
-  (solve(substeps=0));
-- current-nosub: this version with plain Newton (substeps=0): the lever of the modified-Newton substeps;
+- previous: the source of git revision REF (`git archive` into a temporary folder; its own defaults),
+  only with --previous;
 - current: the defaults of this version;
-- current-mkl1: the same with MKL_NUM_THREADS=1 (Pardiso on one thread; FEBio was faster on one).
-Both must give the same displacement field (max |du| / max |u| is printed; <= 1e-6 required).
-Writes benchmarks/results/bench_fe_needle.json; --write-docs refreshes the table in docs/bench.md.
-Reference figures (issue 18, same mesh and loads, 2 cores): needletissue 43.3 s, FEBio 32.5 s.
+- *-mkl1: the same with MKL_NUM_THREADS=1 (Pardiso on one thread; FEBio was faster on one).
+The displacement fields must agree (max |du| / max |u| against the previous version is printed;
+<= 1e-6 required). Writes benchmarks/results/bench_fe_needle.json; --write-docs refreshes the table in
+docs/bench.md. Reference figures (issue 18, same mesh and loads, 2 cores): needletissue 43.3 s, FEBio 32.5 s.
 """
 
 from __future__ import annotations
@@ -31,7 +30,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-VARIANTS = ("previous", "current-nosub", "current", "current-mkl1")
+VARIANTS = ("previous", "previous-mkl1", "current", "current-mkl1")
 FORCES = (100.0, 200.0, 300.0)
 ISSUE_TABLE = [  # issue 18, measured side by side on the shared 2-core machine
     ("needletissue (issue 18)", 43.3, 33.8, 18, 824),
@@ -48,18 +47,15 @@ def make_mesh(path: Path):
 
 def run_one(variant: str, mesh_path: str, u_out: str) -> dict:
     """Solve the model as run_needle_model does (same materials, BCs, load path)."""
-    from needletissue.fem import Fixed, FEModel, SurfaceForce, TaggedMesh, linsolve, solve
+    from needletissue.fem import Fixed, FEModel, SurfaceForce, TaggedMesh, solve
     from needletissue.models.needle.model import MATERIALS
 
-    if variant == "previous":
-        linsolve.REUSE_ANALYSIS = False
     t0, c0 = time.perf_counter(), time.process_time()
     mesh = TaggedMesh.read(mesh_path)
     model = FEModel(mesh, {r: MATERIALS[r] for r in mesh.regions}, order=2, formulation="mixed")
     fmax = max(FORCES)
     bcs = [Fixed("bone_fixed"), Fixed("tissue_far"), SurfaceForce("gripper", total=(0.0, fmax, 0.0))]
-    plain = variant in ("previous", "current-nosub")
-    res = solve(model, bcs, load_factors=[f / fmax for f in FORCES], progress=False, substeps=0 if plain else None)
+    res = solve(model, bcs, load_factors=[f / fmax for f in FORCES], progress=False)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     np.save(u_out, res[-1].displacement)
     last = res[-1]
@@ -71,11 +67,26 @@ def run_one(variant: str, mesh_path: str, u_out: str) -> dict:
             "peak_rss_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
-def child(variant: str, mesh_path: str, u_out: str) -> dict:
+def child(variant: str, mesh_path: str, u_out: str, previous: Path | None) -> dict:
     env = {**os.environ, **({"MKL_NUM_THREADS": "1"} if variant.endswith("-mkl1") else {})}
-    out = subprocess.run([sys.executable, __file__, "--one", variant, mesh_path, u_out], check=True,
+    script = __file__
+    if variant.startswith("previous"):  # that version's own run_one, on its own source
+        env["PYTHONPATH"] = str(previous / "src")
+        script = str(previous / "benchmarks" / "bench_fe_needle.py")
+    out = subprocess.run([sys.executable, script, "--one", "current", mesh_path, u_out], check=True,
                          capture_output=True, text=True, env=env)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    res["variant"] = variant
+    return res
+
+
+def export(ref: str, dest: Path) -> Path:
+    """src/ and benchmarks/ of git revision `ref`, for the "previous" variants."""
+    dest.mkdir(parents=True, exist_ok=True)
+    tar = subprocess.run(["git", "-C", str(ROOT), "archive", ref, "src", "benchmarks"], check=True,
+                         capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=tar, check=True)
+    return dest
 
 
 def table(runs: list[dict]) -> str:
@@ -99,6 +110,7 @@ def main():
     ap.add_argument("--one", nargs=3, metavar=("VARIANT", "MESH", "U_OUT"))
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--previous", metavar="REF", help="git revision to compare with (e.g. the last release)")
     ap.add_argument("--write-docs", action="store_true")
     ap.add_argument("--from-json", action="store_true", help="only rewrite docs/bench.md from the last results")
     a = ap.parse_args()
@@ -108,8 +120,9 @@ def main():
     if a.from_json:
         write_docs(table(json.loads((HERE / "results" / "bench_fe_needle.json").read_text())["runs"]))
         return
-    variants = a.variants.split(",")
+    variants = [v for v in a.variants.split(",") if a.previous or not v.startswith("previous")]
     with tempfile.TemporaryDirectory() as tmp:
+        previous = export(a.previous, Path(tmp) / "previous") if a.previous else None
         msh = Path(tmp) / "needle1.msh"
         make_mesh(msh)
         runs, fields = [], {}
@@ -118,10 +131,10 @@ def main():
         for rep in range(a.repeat):
             for v in variants:
                 u_out = str(Path(tmp) / f"u_{v}.npy")
-                r = child(v, str(msh), u_out)
+                r = child(v, str(msh), u_out, previous)
                 fields[v] = np.load(u_out)
                 runs.append(r)
-                print(f"{v:9s} wall {r['wall_s']:6.1f} s  cpu {r['cpu_s']:6.1f} s  linear {r['linear_solve_s']:6.1f} s  "
+                print(f"{v:13s} wall {r['wall_s']:6.1f} s  cpu {r['cpu_s']:6.1f} s  linear {r['linear_solve_s']:6.1f} s  "
                       f"Newton {r['newton_iterations']} {r['iterations_per_force']}  peak {r['peak_rss_MB']} MB",
                       flush=True)
     ref = fields.get("previous")
@@ -130,7 +143,8 @@ def main():
         print(f"field {v} vs previous: max |du| / max |u| = {d:.2e}")
     md = table(runs)
     print(md)
-    res = {"runs": runs, "field_difference_vs_previous": diff, "table_md": md, "note": peak_note}
+    res = {"runs": runs, "previous": a.previous, "field_difference_vs_previous": diff, "table_md": md,
+           "note": peak_note}
     (HERE / "results").mkdir(exist_ok=True)
     (HERE / "results" / "bench_fe_needle.json").write_text(json.dumps(res, indent=1))
     if a.write_docs:

@@ -88,3 +88,44 @@ def test_substeps_same_answer_with_fewer_tangents():
     assert out[0][-1].newton_substeps == 0
     assert out[None][-1].newton_substeps > 0
     assert out[None][-1].newton_iterations < out[0][-1].newton_iterations
+
+
+def test_bodies_tangent_is_felupes_free_block():
+    """fem.solve's direct assembly (the bodies' tangents straight into the upper triangle of the
+    free-free block, a fixed pattern) gives FElupe's summed, partitioned tangent to round-off, in a
+    deformed state of a mixed (P2/P0 tissue) three-region model, and its partitioned solve with a
+    prescribed displacement (the K10 du0 term) gives FElupe's increment."""
+    import felupe as fem
+    import scipy.sparse as sp
+
+    from needletissue.fem.model import PrescribedDisplacement
+    from needletissue.fem.solve import _Bodies, _Loads
+
+    mesh = TaggedMesh.box((6, 6, 12), (3, 3, 6), layers={"cortical_bone": (0, 4), "muscle": (4, 8),
+                                                         "adipose": (8, 12)})
+    model = FEModel(mesh, {"cortical_bone": "cortical_bone", "muscle": "muscle", "adipose": "adipose"},
+                    order=2, formulation="mixed")
+    loads = _Loads(model, [Fixed("zmin"), PrescribedDisplacement("zmax", (0.3, None, 0.5))])
+    x = model.field
+    x[0].values[:] = np.random.default_rng(2).normal(size=x[0].values.shape) * 1e-2  # a deformed state
+    items = list(model.bodies.values())
+    ours = _Bodies(items, items, loads.dof1, loads.dof0, model.ndof)
+    f = ours.fun(x)
+    np.testing.assert_allclose(f, fun_items(items, x), rtol=0, atol=1e-12 * np.abs(f).max())
+    upper, mats = ours.jac(x)
+    K = jac_items(items, x).tocsr()
+    K11 = K[loads.dof1][:, loads.dof1]
+    ref = sp.triu(K11).toarray()
+    assert np.abs(ref).max() > 0 and upper.nnz >= sp.triu(K11).nnz
+    np.testing.assert_allclose(upper.toarray(), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    ext0 = loads.apply(model, 1.0)
+    assert np.any(ext0)
+
+    def solver(A, b, upper=False):
+        full = (A + sp.triu(A, 1).T) if upper else A
+        return sp.linalg.spsolve(full.tocsc(), b)
+
+    du = ours.solve((upper, mats), -f, x, loads.dof1, loads.dof0, ext0, solver)
+    system = fem.solve.partition(x, K, loads.dof1, loads.dof0, f)
+    ref = fem.solve.solve(*system, ext0, solver=solver)
+    np.testing.assert_allclose(du, ref, rtol=0, atol=1e-9 * np.abs(ref).max())

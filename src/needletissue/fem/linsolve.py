@@ -90,12 +90,20 @@ class TimedSolver:
         if release is not None:
             release()
 
-    def __call__(self, A, b):
+    def __call__(self, A, b, upper: bool = False):
+        """x = A^-1 b. upper=True: A is the upper triangle (CSR, sorted) of a symmetric matrix."""
         if not np.all(np.isfinite(b)):  # e.g. a contact item's NaN residual after interpenetration
             raise np.linalg.LinAlgError(f"{self.name}: non-finite residual")
         t = time.perf_counter()
         try:
-            x = self._fun(A, b)
+            if upper and isinstance(self._fun, _Pardiso):
+                x = self._fun(A, b, upper=True)
+            else:
+                if upper:  # the other backends take the whole matrix
+                    import scipy.sparse as sp
+
+                    A = (A + sp.triu(A, 1, format="csr").T).tocsr()
+                x = self._fun(A, b)
         except np.linalg.LinAlgError:
             raise
         except Exception as exc:  # backend errors (PyPardisoError, SuperLU 'singular matrix', ...)
@@ -157,8 +165,11 @@ def make(name: str, points: np.ndarray | None = None, dof1: np.ndarray | None = 
 class _Pardiso:
     """solver(A, b) on MKL Pardiso through pypardiso's ctypes wrapper, phase by phase.
 
-    Symmetric tangents (hyperelastic bodies) -> LDL^T on the upper triangle (mtype -2): ~1.5x faster
-    and half the factor memory of the general LU (mtype 11, e.g. frictional contact). Per call:
+    Symmetric tangents (hyperelastic bodies) -> Cholesky LL^T on the upper triangle (mtype 2), and
+    LDL^T (mtype -2) from the first tangent that is not positive definite on (Pardiso error -4; e.g. a
+    tissue law beyond its stable range); the general LU (mtype 11) for non-symmetric ones (frictional
+    contact). On the needle model's tangent (37,677 dofs, one MKL thread) the numerical factorisation
+    takes 0.61 s CPU as LL^T and 0.84 s as LDL^T (same fill, 19.2 M), LU ~1.5x LDL^T. Per call:
     analysis (phase 11) only when the sparsity pattern differs from the analysed one, numerical
     factorisation (22), solve (33), then the factor is released (phase 0: no stale factor, and no
     factor held during the next assembly) while the analysis stays. The needle model (37,677 dofs,
@@ -172,10 +183,12 @@ class _Pardiso:
     def __init__(self, reuse: bool = True):
         import weakref
 
+        _mkl_rt_path()
         from pypardiso import PyPardisoSolver
 
         self.reuse = reuse
-        self.solvers = {-2: PyPardisoSolver(mtype=-2), 11: PyPardisoSolver(mtype=11)}
+        self.solvers = {m: PyPardisoSolver(mtype=m) for m in (2, -2, 11)}
+        self.definite = True  # try Cholesky first until a tangent is not positive definite
         self.pattern = {}  # mtype -> (indptr, indices) of the analysed matrix
         self.analyses = 0
         self.keep = False  # keep the factor after a call, for resolve(), until release()
@@ -217,14 +230,32 @@ class _Pardiso:
         finally:
             ps.set_phase(13)
 
-    def __call__(self, A, b):
+    def __call__(self, A, b, upper: bool = False):
+        """upper=True: A is the sorted upper triangle (CSR) of a symmetric matrix, taken as it is."""
         import scipy.sparse as sp
 
-        A = A.tocsr()
-        amax = abs(A).max()
-        sym = abs(A - A.T).max() <= 1e-12 * amax
-        mtype = -2 if sym else 11
-        M = sp.triu(A, format="csr") if sym else A
+        from pypardiso.pardiso_wrapper import PyPardisoError
+
+        if upper:
+            sym, M = True, A
+        else:
+            A = A.tocsr()
+            sym = abs(A - A.T).max() <= 1e-12 * abs(A).max()
+            M = sp.triu(A, format="csr") if sym else A
+        if sym and self.definite:
+            try:
+                return self._solve(2, M, b)
+            except PyPardisoError as exc:
+                if exc.value != -4:  # -4: a pivot <= 0, not positive definite
+                    raise
+                self.definite = False
+                self.solvers[2].free_memory(everything=True)
+                self.pattern.pop(2, None)
+        return self._solve(-2 if sym else 11, M, b)
+
+    def _solve(self, mtype, M, b):
+        import scipy.sparse as sp
+
         ps = self.solvers[mtype]
         ps._check_A(M)  # sorts the indices, rejects empty rows, sets CSR input (iparm 12)
         b = ps._check_b(M, np.asarray(b, float))
@@ -268,6 +299,47 @@ class _Pardiso:
                 ps.set_phase(0)  # release the factor, keep the analysis
                 ps._call_pardiso(sp.csr_matrix((0, 0)), np.zeros(0))
                 ps.set_phase(13)
+
+
+def _mkl_rt_path():
+    """Point pypardiso at MKL's runtime library of the installed `mkl` wheel (PYPARDISO_MKL_RT):
+    without it every PyPardisoSolver() globs the whole environment for it (0.6 s each, measured)."""
+    import os
+
+    if os.environ.get("PYPARDISO_MKL_RT"):
+        return
+    try:
+        from importlib.metadata import PackageNotFoundError, files
+
+        found = [f.locate() for f in files("mkl") or () if "mkl_rt" in f.name]
+    except (PackageNotFoundError, OSError):
+        return
+    found = sorted((p for p in found if p.exists()), key=lambda p: len(str(p)))
+    if found:
+        os.environ["PYPARDISO_MKL_RT"] = str(found[0].resolve())
+
+
+# Pardiso on one MKL thread up to this many free dofs (unless MKL_NUM_THREADS is set): on the shared
+# 2-core machine the one-needle model (37,677 dofs) took CPU 20.0 s with one thread against 24.2 s with
+# two, wall 40.3 vs 48.2 s (medians of 2, docs/bench.md); FEBio was faster on one thread too.
+PARDISO_ONE_THREAD_MAX_DOFS = 100_000
+
+
+def thread_limits(name: str, ndof: int):
+    """Context for a solve: OpenBLAS on one thread (single_threaded_openblas), and MKL's Pardiso on
+    one thread for systems up to PARDISO_ONE_THREAD_MAX_DOFS free dofs unless MKL_NUM_THREADS is set."""
+    import os
+    from contextlib import ExitStack
+
+    stack = ExitStack()
+    stack.enter_context(single_threaded_openblas())
+    if name == "pardiso" and ndof <= PARDISO_ONE_THREAD_MAX_DOFS and "MKL_NUM_THREADS" not in os.environ:
+        try:
+            from threadpoolctl import ThreadpoolController
+        except ImportError:
+            return stack
+        stack.enter_context(ThreadpoolController().select(internal_api="mkl").limit(limits=1))
+    return stack
 
 
 def single_threaded_openblas():

@@ -18,9 +18,9 @@ from needletissue.fem.result import FEResult, green_lagrange, principal_stretche
 # linearised rotation stretches them, and their large spurious forces drive the soft modes. The tangent is
 # consistent (tests/fem/test_newton.py), so further corrections with the same factorisation converge
 # too, at a residual and a back-substitution each instead of a tangent assembly and a factorisation.
-SUBSTEPS = 6
+SUBSTEPS = 8
 SUBSTEP_START = 1e-2        # first substep only if its correction is <= this x max |u|
-SUBSTEP_CONTRACTION = 0.5   # each further one only if <= this x the previous correction
+SUBSTEP_CONTRACTION = 0.8   # each further one only if <= this x the previous one (0.5: 14 iterations, not 11)
 
 
 def _substep_plugin(fem, linear, dof1, nmax: int):
@@ -69,6 +69,82 @@ def _substep_plugin(fem, linear, dof1, nmax: int):
                 linear.release()  # no factor held during the next tangent assembly
 
     return _Substeps()
+
+
+class _Bodies:
+    """Residual, tangent and linear solve for FElupe's newtonraphson when the items are the model's
+    bodies and point loads only (no contact): each body's tangent goes straight into the upper
+    triangle of the free-free block K11, whose CSR pattern is built once, instead of summing the bodies'
+    global matrices, partitioning the sum, testing it for symmetry and cutting out its triangle at
+    every iteration (0.4 s per iteration of the one-needle model, docs/bench.md). The bodies'
+    hyperelastic laws have symmetric tangents (second derivatives of an energy)."""
+
+    def __init__(self, items, bodies, dof1, dof0, ndof):
+        self.items, self.bodies = items, bodies
+        self.dof1, self.dof0, self.n = dof1, dof0, ndof
+        self.patterns = None  # each body's (indptr, indices)
+        self.where = None     # for each stored value of the bodies' matrices, its slot in K11's upper data (0: none)
+
+    def fun(self, x):
+        f = np.zeros(self.n)
+        for item in self.items:
+            item.field.link(x)
+            r = item.assemble.vector(field=item.field)
+            if item.assemble.multiplier is not None:
+                r = r * item.assemble.multiplier
+            f[:r.shape[0]] += r.toarray().ravel()
+        return f
+
+    def jac(self, x):
+        """At the state of the last fun(x), as FElupe's own assembly."""
+        import scipy.sparse as sp
+
+        mats = [b.assemble.matrix() for b in self.bodies]
+        if self.patterns is None or not all(
+                np.array_equal(K.indptr, p) and np.array_equal(K.indices, i) for K, (p, i) in zip(mats, self.patterns)):
+            self._build(mats)
+        values = np.concatenate([K.data if b.assemble.multiplier is None else K.data * b.assemble.multiplier
+                                 for K, b in zip(mats, self.bodies)])
+        data = np.bincount(self.where, weights=values, minlength=len(self.indices) + 1)[1:]
+        upper = sp.csr_matrix((data, self.indices, self.indptr), shape=(len(self.dof1),) * 2)
+        upper.has_sorted_indices = True
+        return upper, mats
+
+    def _build(self, mats):
+        import scipy.sparse as sp
+
+        n1 = len(self.dof1)
+        union = sum(sp.csr_matrix((np.ones(K.nnz), K.indices, K.indptr), shape=(self.n, self.n)) for K in mats)
+        upper = sp.triu(union[self.dof1][:, self.dof1], format="csr")  # CSR order: sorted row * n1 + col
+        upper.sort_indices()
+        self.indptr, self.indices = upper.indptr.astype(np.int32), upper.indices.astype(np.int32)
+        slots = np.repeat(np.arange(n1, dtype=np.int64), np.diff(upper.indptr)) * n1 + upper.indices
+        free = np.full(self.n, -1, np.int64)
+        free[self.dof1] = np.arange(n1)
+        where = []
+        for K in mats:
+            r = free[np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))]
+            c = free[K.indices]
+            keep = (r >= 0) & (c >= r)
+            w = np.zeros(K.nnz, np.intp)  # slot 0 collects the values outside K11's upper triangle
+            w[keep] = np.searchsorted(slots, r[keep] * n1 + c[keep]) + 1
+            where.append(w)
+        self.where = np.concatenate(where)
+        self.patterns = [(K.indptr.copy(), K.indices.copy()) for K in mats]
+
+    def solve(self, A, b, x, dof1, dof0, ext0, solver):
+        """FElupe's partitioned solve, K11 du1 = b1 - K10 du0, with A = (upper triangle of K11, body matrices)."""
+        upper, mats = A
+        du0 = ext0 - np.concatenate([f.values.ravel() for f in x.fields])[dof0]
+        rhs = b[dof1]
+        if np.any(du0):  # prescribed displacements changed: K10 du0 from the bodies' matrices
+            full = np.zeros(self.n)
+            full[dof0] = du0
+            rhs = rhs - sum(K @ full[:K.shape[1]] for K in mats)[dof1]
+        du = np.empty(self.n)
+        du[dof1] = solver(upper, rhs, upper=True)
+        du[dof0] = du0
+        return du
 
 
 class _Loads:
@@ -267,6 +343,9 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
 
     plugins = [_Report()]
     searching = bool(items) if linesearch is None else bool(linesearch)
+    # the line search's admissibility test needs FElupe's items (det F per body)
+    bonded = None if items or searching else _Bodies(all_items, bodies, loads.dof1, loads.dof0, model.ndof)
+    newton = {"items": all_items} if bonded is None else {"fun": bonded.fun, "jac": bonded.jac, "solve": bonded.solve}
     if substeps is None:
         substeps = 0 if items or searching else SUBSTEPS
     substeps = int(check_number("substeps", substeps, ge=0))
@@ -288,7 +367,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     newton_s = 0.0
     norms: list[list[float]] = []
     out = []
-    with bar if progress else nullcontext(), linsolve.single_threaded_openblas(), closing(linear):
+    with bar if progress else nullcontext(), linsolve.thread_limits(name, len(loads.dof1)), closing(linear):
         for target in lams:
             while lam < target * (1 - 1e-12):
                 # equal sub-steps no larger than the allowed increment (no tiny remainders)
@@ -310,8 +389,11 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 try:
                     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):  # failures are handled
                         res = fem.newtonraphson(
-                            x0=field, items=all_items, dof1=loads.dof1, dof0=loads.dof0, ext0=ext0,
-                            solver=linear, tol=tol, maxiter=maxiter, verbose=0, plugins=plugins)
+                            x0=field, dof1=loads.dof1, dof0=loads.dof0, ext0=ext0,
+                            solver=linear, tol=tol, maxiter=maxiter, verbose=0, plugins=plugins, **newton)
+                    if bonded is not None and res.success:  # what FElupe does for items
+                        for item in all_items:
+                            item.results.update_statevars()
                     ok = bool(res.success) and np.all(np.isfinite(res.fun))
                     if ok:  # the energies are defined for det F < 0 too: reject inverted elements
                         jmin = min(_min_det_f(b) for b in bodies)
