@@ -813,9 +813,9 @@ def smooth_tet_mesh(seg, cfg):
     """TetMesh with smooth, conforming tissue interfaces (module docstring); cfg: tetmesh.MeshConfig."""
     import time
 
-    from needletissue.geometry.tetmesh import (TetMesh, _crop_and_coarsen, _grid_frame, bone_surfaces_by_bone,
-                                               face_pairs, interface_surfaces, regular_tet_volume,
-                                               unique_rows)
+    from needletissue.geometry.tetmesh import (TetMesh, _crop_and_coarsen, _grid_frame, _row_groups,
+                                               bone_surfaces_by_bone, face_pairs, interface_surfaces,
+                                               regular_tet_volume)
     from needletissue.imaging.segment import material_for
 
     t0 = time.perf_counter()
@@ -866,8 +866,7 @@ def smooth_tet_mesh(seg, cfg):
     fixed[np.unique(faces[bnd])] = True
     # the worst elements have all four nodes on interfaces (measured): let smooth-patch nodes slide
     n_c = len(cells)
-    _, inv_f, cnt = unique_rows(np.sort(faces, axis=1))
-    order = np.argsort(inv_f, kind="stable")
+    order, inv_f, cnt = _row_groups(np.sort(faces, axis=1))     # order = argsort(inv_f, kind="stable")
     two = order[cnt[inv_f[order]] == 2].reshape(-1, 2)
     partner = np.full(len(faces), -1)
     partner[two[:, 0]], partner[two[:, 1]] = two[:, 1], two[:, 0]
