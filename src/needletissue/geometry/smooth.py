@@ -195,6 +195,8 @@ def smooth_interfaces(arr: np.ndarray, spacing, *, iterations: int = 16, scale: 
     import pyvista as pv
     from scipy.spatial import cKDTree
 
+    from needletissue.geometry.tetmesh import unique_rows
+
     sp = np.asarray(spacing, float)
     arr, n_fixed = fix_edge_contacts(arr)
     grid = pv.ImageData(dimensions=arr.shape[::-1], spacing=sp)
@@ -211,8 +213,8 @@ def smooth_interfaces(arr: np.ndarray, spacing, *, iterations: int = 16, scale: 
     bl = np.asarray(sm.cell_data["boundary_labels"]).astype(np.int64)
     # where a tissue touches itself at a voxel corner, surface nets emits coincident points (a pinch);
     # smoothed apart they open a hole in the interface. Merge them and keep them at the corner.
-    _, first, rep = np.unique(np.round(x0 / sp, 6), axis=0, return_index=True, return_inverse=True)
-    canon = first[rep.ravel()]
+    first, rep, _ = unique_rows(np.round(x0 / sp * 1e6).astype(np.int64))   # np.unique(axis=0): 10x slower
+    canon = first[rep]
     pinch = canon != np.arange(len(x0))
     faces = canon[faces]
     keep = (bl[:, 0] != bl[:, 1]) & (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) \
@@ -254,7 +256,7 @@ def smooth_interfaces(arr: np.ndarray, spacing, *, iterations: int = 16, scale: 
     for lab in np.unique(bl):
         fl = faces[(bl[:, 0] == lab) | (bl[:, 1] == lab)]
         e = np.sort(np.concatenate([fl[:, [0, 1]], fl[:, [1, 2]], fl[:, [2, 0]]]), axis=1)
-        open_edges += int(np.count_nonzero(np.unique(e, axis=0, return_counts=True)[1] % 2))
+        open_edges += int(np.count_nonzero(unique_rows(e)[2] % 2))
     if open_edges:   # a tissue whose interfaces do not close would merge with its neighbour in TetGen
         raise InputError("labels", f"smoothed interfaces leave {open_edges} open edge(s)")
     moved = np.linalg.norm(x - x0, axis=1)
