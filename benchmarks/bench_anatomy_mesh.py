@@ -6,7 +6,7 @@ route (geometry.smooth), on the example CT and on the SSM mean pelvis, at the de
 Goals (issue 16): min dihedral >= 10 deg, 1st percentile >= 20 deg, no inverted / sliver (< 5 deg)
 tetrahedra; every tissue's volume within 3 % of its label volume; Dice >= 0.9 for bone and muscles;
 Hausdorff 95 % <= one voxel; CT -> mesh < 60 s on 2 cores. Times: wall and this process's CPU (the
-machine may be shared; TetGen and the gmsh optimiser are single-threaded).
+machine may be shared; TetGen is single-threaded, gmsh's optimiser runs on two processes).
 """
 
 from __future__ import annotations

@@ -307,3 +307,18 @@ def test_remove_slivers_may_move_an_interface_by_at_most_max_shift():
     assert floor < 0.04
     assert floor + 0.03 < _interface_distance(x, c, tag, *runs[0.3][:3]) <= 0.3 + floor
     assert _interface_distance(x, c, tag, *runs[3.0][:3]) > 0.3 + floor     # the bound is what limits it
+
+
+def test_gmsh_optimize_in_two_processes_equals_one_and_keeps_interfaces():
+    from needletissue.geometry.smooth import gmsh_optimize
+
+    x, c, tag = _slivered_two_tissue_box(n_slivers=6)
+    tag = np.where(x[c].mean(1)[:, 1] < 5.0, tag, tag + 2)      # four tissues, two per process
+    one = gmsh_optimize(x, c, tag, 0.5, workers=1)
+    two = gmsh_optimize(x, c, tag, 0.5, workers=2)
+    cells = lambda y, cc, t: {(int(k), tuple(sorted(map(tuple, np.round(y[e], 12))))) for e, k in zip(cc, t)}  # noqa: E731
+    assert cells(*one) == cells(*two)                                   # same elements, tissues and nodes
+    _check_complex(one[0], np.where(vol_min_dihedral(one[0][one[1]])[0][:, None] > 0, one[1],
+                                    one[1][:, [0, 2, 1, 3]]))
+    assert vol_min_dihedral(one[0][one[1]])[1].min() > vol_min_dihedral(x[c])[1].min()   # it optimised
+    assert _surface_triangles(*one) == _surface_triangles(x, c, tag)   # interfaces and boundary fixed

@@ -195,6 +195,8 @@ def smooth_interfaces(arr: np.ndarray, spacing, *, iterations: int = 16, scale: 
     import pyvista as pv
     from scipy.spatial import cKDTree
 
+    from needletissue.geometry.tetmesh import unique_rows
+
     sp = np.asarray(spacing, float)
     arr, n_fixed = fix_edge_contacts(arr)
     grid = pv.ImageData(dimensions=arr.shape[::-1], spacing=sp)
@@ -211,8 +213,8 @@ def smooth_interfaces(arr: np.ndarray, spacing, *, iterations: int = 16, scale: 
     bl = np.asarray(sm.cell_data["boundary_labels"]).astype(np.int64)
     # where a tissue touches itself at a voxel corner, surface nets emits coincident points (a pinch);
     # smoothed apart they open a hole in the interface. Merge them and keep them at the corner.
-    _, first, rep = np.unique(np.round(x0 / sp, 6), axis=0, return_index=True, return_inverse=True)
-    canon = first[rep.ravel()]
+    first, rep, _ = unique_rows(np.round(x0 / sp * 1e6).astype(np.int64))   # np.unique(axis=0): 10x slower
+    canon = first[rep]
     pinch = canon != np.arange(len(x0))
     faces = canon[faces]
     keep = (bl[:, 0] != bl[:, 1]) & (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) \
@@ -254,7 +256,7 @@ def smooth_interfaces(arr: np.ndarray, spacing, *, iterations: int = 16, scale: 
     for lab in np.unique(bl):
         fl = faces[(bl[:, 0] == lab) | (bl[:, 1] == lab)]
         e = np.sort(np.concatenate([fl[:, [0, 1]], fl[:, [1, 2]], fl[:, [2, 0]]]), axis=1)
-        open_edges += int(np.count_nonzero(np.unique(e, axis=0, return_counts=True)[1] % 2))
+        open_edges += int(np.count_nonzero(unique_rows(e)[2] % 2))
     if open_edges:   # a tissue whose interfaces do not close would merge with its neighbour in TetGen
         raise InputError("labels", f"smoothed interfaces leave {open_edges} open edge(s)")
     moved = np.linalg.norm(x - x0, axis=1)
@@ -284,11 +286,89 @@ def _tetgen(points, faces, cfg, bound):
     return np.asarray(nodes, float), np.asarray(elem, np.int64)[:, :4], np.asarray(attr).ravel()
 
 
-def gmsh_optimize(points: np.ndarray, cells: np.ndarray, tag: np.ndarray, threshold: float = 0.5):
+def gmsh_optimize(points: np.ndarray, cells: np.ndarray, tag: np.ndarray, threshold: float = 0.5,
+                  workers: int = 2):
     """gmsh's tetrahedron optimiser (edge/face swaps, node relocation) on a multi-region mesh whose
     interface and boundary nodes stay fixed: they sit on one discrete surface, each region is a discrete
     volume of its own, so no element changes region and no interface moves. Elements with gmsh quality
-    (gamma) below `threshold` are worked on. Returns (points, cells, tag), nodes renumbered."""
+    (gamma) below `threshold` are worked on. Returns (points, cells, tag), nodes renumbered.
+
+    The regions are independent (their shared nodes are fixed), so with `workers` 2 the tissues are split
+    into two groups of about equal element count, one optimised in a child process while this one does
+    the other: gmsh's optimiser is single-threaded. Same result as one process (the per-region passes
+    do not see each other)."""
+    labels = np.unique(tag)
+    groups = [labels]
+    if workers > 1 and len(labels) > 1:
+        counts = np.bincount(np.searchsorted(labels, tag), minlength=len(labels))
+        groups, load = [[], []], [0, 0]
+        for i in np.argsort(-counts, kind="stable"):   # greedy: largest tissue to the lighter group
+            k = int(np.argmin(load))
+            groups[k].append(labels[i])
+            load[k] += counts[i]
+        groups = [np.sort(np.asarray(g)) for g in groups]
+    X = np.asarray(points, float)
+    if len(groups) == 1:
+        parts = [_gmsh_optimize_group(X, cells, tag, groups[0], threshold)]
+    else:
+        import tempfile
+        import threading
+        from pathlib import Path
+
+        from needletissue.geometry.child import call_in_child
+
+        with tempfile.TemporaryDirectory(prefix="needletissue-gmsh-") as tmp:
+            inp, out = str(Path(tmp) / "in.npz"), str(Path(tmp) / "out.npz")
+            sel = np.isin(tag, groups[1])
+            np.savez(inp, points=X, cells=cells[sel], tag=tag[sel], threshold=threshold)
+            err = []
+
+            def child():
+                try:
+                    call_in_child("needletissue.geometry.smooth:_gmsh_optimize_file",
+                                  {"inp": inp, "out": out}, what="gmsh's optimiser")
+                except BaseException as exc:   # re-raised in this thread below
+                    err.append(exc)
+
+            th = threading.Thread(target=child, daemon=True)
+            th.start()
+            first = _gmsh_optimize_group(X, cells[~sel], tag[~sel], groups[0], threshold)
+            th.join()
+            if err:
+                raise err[0]
+            with np.load(out) as z:
+                second = (z["nodes"], z["xyz"], z["cells"], z["tag"])
+        parts = [first, second]
+    if len(parts) == 1:
+        nn, X, c, t = parts[0]
+    else:   # gmsh renumbers nodes: the groups' shared (fixed, bit-identical) nodes are merged by position
+        (n1, x1, c1, t1), (n2, x2, c2, t2) = parts
+        from needletissue.geometry.tetmesh import unique_rows
+
+        X = np.vstack([x1, x2])
+        first, inv, _ = unique_rows(np.ascontiguousarray(X).view(np.int64))
+        ids = first[inv]
+        c = ids[np.concatenate([np.searchsorted(n1, c1), len(n1) + np.searchsorted(n2, c2)])]
+        t = np.concatenate([t1, t2])
+        order = np.argsort(t, kind="stable")      # regions in label order, as from one process
+        c, t = c[order], t[order]
+    c = np.asarray(c) if len(parts) > 1 else np.searchsorted(nn, c)
+    used, inv = np.unique(c, return_inverse=True)
+    return X[used], inv.reshape(c.shape), t
+
+
+def _gmsh_optimize_file(inp: str, out: str) -> dict:
+    """Child-process side of gmsh_optimize: one group of regions from / to .npz files."""
+    with np.load(inp) as z:
+        pts, cells, tag, thr = z["points"], z["cells"], z["tag"], float(z["threshold"])
+    nn, xyz, c, t = _gmsh_optimize_group(pts, cells, tag, np.unique(tag), thr)
+    np.savez(out, nodes=nn, xyz=xyz, cells=c, tag=t)
+    return {}
+
+
+def _gmsh_optimize_group(points, cells, tag, labels, threshold):
+    """gmsh's optimiser on the regions `labels`; returns (gmsh's node tags sorted, their coordinates, cells
+    as node tags, tag)."""
     import gmsh
 
     from needletissue.geometry.tetmesh import face_pairs
@@ -309,7 +389,6 @@ def gmsh_optimize(points: np.ndarray, cells: np.ndarray, tag: np.ndarray, thresh
         gmsh.model.mesh.addElementsByType(1, 2, [], (sf + 1).ravel())
         placed = np.zeros(len(points), bool)
         placed[snodes] = True
-        labels = np.unique(tag)
         for i, lab in enumerate(labels, start=1):
             c = cells[tag == lab]
             gmsh.model.addDiscreteEntity(3, i, [1])
@@ -323,8 +402,6 @@ def gmsh_optimize(points: np.ndarray, cells: np.ndarray, tag: np.ndarray, thresh
             for method in OPTIMIZE_METHODS:
                 gmsh.model.mesh.optimize(method, force=True)
         nt, xyz, _ = gmsh.model.mesh.getNodes()
-        X = np.zeros((int(nt.max()) + 1, 3))
-        X[nt.astype(np.int64)] = xyz.reshape(-1, 3)
         out_c, out_t = [], []
         for i, lab in enumerate(labels, start=1):
             _, en = gmsh.model.mesh.getElementsByType(4, i)
@@ -334,9 +411,8 @@ def gmsh_optimize(points: np.ndarray, cells: np.ndarray, tag: np.ndarray, thresh
         gmsh.model.remove()
         if not was_init:
             gmsh.finalize()
-    c = np.concatenate(out_c)
-    used, inv = np.unique(c, return_inverse=True)
-    return X[used], inv.reshape(c.shape), np.concatenate(out_t)
+    order = np.argsort(nt)
+    return nt[order].astype(np.int64), xyz.reshape(-1, 3)[order], np.concatenate(out_c), np.concatenate(out_t)
 
 
 def signed_volume(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -739,9 +815,9 @@ def smooth_tet_mesh(seg, cfg):
     """TetMesh with smooth, conforming tissue interfaces (module docstring); cfg: tetmesh.MeshConfig."""
     import time
 
-    from needletissue.geometry.tetmesh import (TetMesh, _crop_and_coarsen, _grid_frame, bone_surfaces_by_bone,
-                                               face_pairs, interface_surfaces, regular_tet_volume,
-                                               unique_rows)
+    from needletissue.geometry.tetmesh import (TetMesh, _crop_and_coarsen, _grid_frame, _row_groups,
+                                               bone_surfaces_by_bone, face_pairs, interface_surfaces,
+                                               regular_tet_volume)
     from needletissue.imaging.segment import material_for
 
     t0 = time.perf_counter()
@@ -792,8 +868,7 @@ def smooth_tet_mesh(seg, cfg):
     fixed[np.unique(faces[bnd])] = True
     # the worst elements have all four nodes on interfaces (measured): let smooth-patch nodes slide
     n_c = len(cells)
-    _, inv_f, cnt = unique_rows(np.sort(faces, axis=1))
-    order = np.argsort(inv_f, kind="stable")
+    order, inv_f, cnt = _row_groups(np.sort(faces, axis=1))     # order = argsort(inv_f, kind="stable")
     two = order[cnt[inv_f[order]] == 2].reshape(-1, 2)
     partner = np.full(len(faces), -1)
     partner[two[:, 0]], partner[two[:, 1]] = two[:, 1], two[:, 0]

@@ -347,15 +347,30 @@ def unique_rows(rows: np.ndarray):
     """np.unique(rows, axis=0, return_index, return_inverse, return_counts) for an integer (n, k) array,
     same groups in the same (lexicographic) order; by lexsort, because np.unique(axis=0) sorts a void
     view and took 15-40 s on the 4.7 M faces of a 1.2 M-tetrahedron mesh. Returns (first, inverse, counts)."""
+    order, inv, cnt = _row_groups(rows)
+    return order[np.cumsum(cnt) - cnt], inv, cnt
+
+
+def _row_groups(rows: np.ndarray):
+    """(stable order of the rows sorted lexicographically, group id per row, group sizes)."""
     if len(rows) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
-    order = np.lexsort(rows.T[::-1])
-    s = rows[order]
-    new = np.concatenate([[True], np.any(s[1:] != s[:-1], axis=1)])
+    lo, m = int(rows.min()), int(rows.max()) - int(rows.min()) + 1
+    if m ** rows.shape[1] < 2 ** 62:   # one int64 key per row, same order: one argsort, 4x faster than lexsort
+        key = np.zeros(len(rows), np.int64)
+        for j in range(rows.shape[1]):
+            key = key * m + (rows[:, j] - lo)
+        order = np.argsort(key, kind="stable")
+        s = key[order]
+        new = np.concatenate([[True], s[1:] != s[:-1]])
+    else:
+        order = np.lexsort(rows.T[::-1])
+        s = rows[order]
+        new = np.concatenate([[True], np.any(s[1:] != s[:-1], axis=1)])
     gid = np.cumsum(new) - 1
     inv = np.empty(len(rows), np.int64)
     inv[order] = gid
-    return order[new], inv, np.bincount(gid)
+    return order, inv, np.bincount(gid)
 
 
 def face_pairs(cells: np.ndarray, tag: np.ndarray):
@@ -365,8 +380,7 @@ def face_pairs(cells: np.ndarray, tag: np.ndarray):
     loc = [(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)]
     faces = np.concatenate([cells[:, f] for f in loc])
     owner = np.tile(np.arange(len(cells)), 4)
-    _, inv, cnt = unique_rows(np.sort(faces, axis=1))
-    order = np.argsort(inv, kind="stable")
+    order, inv, cnt = _row_groups(np.sort(faces, axis=1))   # order = argsort(inv, kind="stable")
     pair = order[cnt[inv[order]] == 2].reshape(-1, 2)
     inter = pair[tag[owner[pair[:, 0]]] != tag[owner[pair[:, 1]]], 0]
     return inter, np.flatnonzero(cnt[inv] == 1), faces
