@@ -140,39 +140,55 @@ def test_closed_form_failure_report_is_the_reference_one(monkeypatch, error_esti
     assert msgs[0] == msgs[1] and "2 of 4 samples" in msgs[1] and "sample 1" in msgs[1]
 
 
+# a three-layer model for the energy checks (mm, N/mm^2, N mm, N)
+L, T3, K3, Z3, KB, F3 = 90.0, np.array([20.0, 12.0, 5.0]), np.array([0.3, 0.02, 1.1]), 80.0, 40.0, 250.0
+
+
+def _reference_energy(order, cos):
+    """The Ritz energy of order `order` on the model above, computed independently of the kernel: the spring
+    energy integrated by a 60-point Gauss rule per layer in NumPy on the Legendre basis."""
+    x, w = np.polynomial.legendre.leggauss(60)
+    edges = np.concatenate([[0.0], np.cumsum(T3)])
+
+    def energy(c):
+        es = 0.0
+        for j in range(T3.size):
+            z = edges[j] + (x + 1) * T3[j] / 2
+            v = basis.evaluate(z / L, order) @ c
+            dv = basis.evaluate(z / L, order, 1) @ c / L
+            y = v * v * (1 + dv * dv) if cos else v * v
+            es += K3[j] * T3[j] / 2 * np.sum(w * (0.5 * y + 0.25 * y * y))
+        return 0.5 * KB * c @ c + es - F3 * basis.evaluate(np.array([Z3 / L]), order)[0] @ c
+
+    return energy
+
+
+def _assert_derivatives(energy, c, g, H):
+    """g and H (full matrix) against central differences of energy at c. With an energy ~1e3 N mm and
+    h = 1e-4, the Hessian's round-off is ~1e-16 * 1e3 / h^2 ~ 1e-5."""
+    h = 1e-4
+    n = c.size
+    e = np.eye(n) * h
+    grad = [(energy(c + e[i]) - energy(c - e[i])) / (2 * h) for i in range(n)]
+    hess = [[(energy(c + e[i] + e[j]) - energy(c + e[i] - e[j]) - energy(c - e[i] + e[j])
+              + energy(c - e[i] - e[j])) / (4 * h * h) for j in range(n)] for i in range(n)]
+    np.testing.assert_allclose(g, grad, rtol=1e-7, atol=1e-7 * abs(g[0]))
+    np.testing.assert_allclose(H, hess, rtol=1e-5, atol=1e-6 * max(np.diag(H)))
+
+
 @pytest.mark.parametrize("cos", [True, False])
 def test_closed_form_energy_is_the_integral(cos):
     """The table's energy, gradient and Hessian against an independent computation: the spring
     energy integrated by a 60-point Gauss rule per layer in NumPy, differentiated by central differences."""
-    l, T, K, z3, kb, F = 90.0, np.array([20.0, 12.0, 5.0]), np.array([0.3, 0.02, 1.1]), 80.0, 40.0, 250.0
     GX, GW = basis.gauss_tables()
-    tab = np.empty(kernel.table_size(T.size, cos))
-    kernel.cubic_table(l, T, K, z3, cos, tab, np.empty(66), GX, GW)
-    x, w = np.polynomial.legendre.leggauss(60)
-    edges = np.concatenate([[0.0], np.cumsum(T)])
-
-    def energy(c):
-        es = 0.0
-        for j in range(T.size):
-            z = edges[j] + (x + 1) * T[j] / 2
-            v = basis.evaluate(z / l, 3) @ c
-            dv = basis.evaluate(z / l, 3, 1) @ c / l
-            y = v * v * (1 + dv * dv) if cos else v * v
-            es += K[j] * T[j] / 2 * np.sum(w * (0.5 * y + 0.25 * y * y))
-        return 0.5 * kb * c @ c + es - F * basis.evaluate(np.array([z3 / l]), 3)[0] @ c
-
+    tab = np.empty(kernel.table_size(T3.size, cos))
+    kernel.cubic_table(L, T3, K3, Z3, cos, tab, np.empty(66), GX, GW)
+    energy = _reference_energy(3, cos)
     c = np.array([7.0, -2.5])
-    pi, eb, es, wk, g0, g1, h00, h10, h11 = kernel._energy3c(c[0], c[1], tab, kb, F, True, np.empty(18))
+    pi, eb, es, wk, g0, g1, h00, h10, h11 = kernel._energy3c(c[0], c[1], tab, KB, F3, True, np.empty(18))
     assert pi == pytest.approx(energy(c), rel=1e-13)
-    assert kernel._energy3c(c[0], c[1], tab, kb, F, False, np.empty(18))[0] == pytest.approx(pi, rel=1e-13)
-    h = 1e-4
-    e = np.eye(2) * h
-    grad = [(energy(c + e[i]) - energy(c - e[i])) / (2 * h) for i in range(2)]
-    hess = [[(energy(c + e[i] + e[j]) - energy(c + e[i] - e[j]) - energy(c - e[i] + e[j])
-              + energy(c - e[i] - e[j])) / (4 * h * h) for j in range(2)] for i in range(2)]
-    np.testing.assert_allclose([g0, g1], grad, rtol=1e-7, atol=1e-7 * abs(g0))
-    # central differences of an energy ~1e3 N mm with h = 1e-4: round-off ~1e-16 * 1e3 / h^2 ~ 1e-5
-    np.testing.assert_allclose([[h00, h10], [h10, h11]], hess, rtol=1e-5, atol=1e-6 * max(h00, h11))
+    assert kernel._energy3c(c[0], c[1], tab, KB, F3, False, np.empty(18))[0] == pytest.approx(pi, rel=1e-13)
+    _assert_derivatives(energy, c, [g0, g1], [[h00, h10], [h10, h11]])
 
 
 @pytest.mark.parametrize("cos", [True, False])
@@ -219,36 +235,16 @@ def test_order4_estimate_is_the_sup_of_the_change_to_an_order4_solve():
 def test_order4_monomial_energy_is_the_integral(cos):
     """kernel._energy4g (order 4, basis in monomial form at the Gauss points) against an independent
     NumPy quadrature (60 points per layer, the Legendre basis) and its central differences."""
-    l, T, K, z3, kb, F = 90.0, np.array([20.0, 12.0, 5.0]), np.array([0.3, 0.02, 1.1]), 80.0, 40.0, 250.0
     GX, GW = basis.gauss_tables()
-    tab = np.empty(3 + 2 * T.size * 15)
-    nq = kernel.quartic_points(l, T, K, z3, cos, tab, GX, GW)
-    x, w = np.polynomial.legendre.leggauss(60)
-    edges = np.concatenate([[0.0], np.cumsum(T)])
-
-    def energy(c):
-        es = 0.0
-        for j in range(T.size):
-            z = edges[j] + (x + 1) * T[j] / 2
-            v = basis.evaluate(z / l, 4) @ c
-            dv = basis.evaluate(z / l, 4, 1) @ c / l
-            y = v * v * (1 + dv * dv) if cos else v * v
-            es += K[j] * T[j] / 2 * np.sum(w * (0.5 * y + 0.25 * y * y))
-        return 0.5 * kb * c @ c + es - F * basis.evaluate(np.array([z3 / l]), 4)[0] @ c
-
+    tab = np.empty(3 + 2 * T3.size * 15)
+    nq = kernel.quartic_points(L, T3, K3, Z3, cos, tab, GX, GW)
+    energy = _reference_energy(4, cos)
     c = np.array([7.0, -2.5, 1.5])
-    r = kernel._energy4g(c[0], c[1], c[2], tab, nq, 1.0 / l, cos, kb, F, True)
+    r = kernel._energy4g(c[0], c[1], c[2], tab, nq, 1.0 / L, cos, KB, F3, True)
     assert r[0] == pytest.approx(energy(c), rel=1e-13)
-    assert kernel._energy4g(c[0], c[1], c[2], tab, nq, 1.0 / l, cos, kb, F, False)[0] == pytest.approx(r[0], rel=1e-13)
-    h = 1e-4
-    e = np.eye(3) * h
-    grad = [(energy(c + e[i]) - energy(c - e[i])) / (2 * h) for i in range(3)]
-    hess = [[(energy(c + e[i] + e[j]) - energy(c + e[i] - e[j]) - energy(c - e[i] + e[j])
-              + energy(c - e[i] - e[j])) / (4 * h * h) for j in range(3)] for i in range(3)]
-    np.testing.assert_allclose(r[4:7], grad, rtol=1e-7, atol=1e-7 * abs(r[4]))
+    assert kernel._energy4g(c[0], c[1], c[2], tab, nq, 1.0 / L, cos, KB, F3, False)[0] == pytest.approx(r[0], rel=1e-13)
     h00, h10, h11, h20, h21, h22 = r[7:]
-    H = [[h00, h10, h20], [h10, h11, h21], [h20, h21, h22]]
-    np.testing.assert_allclose(H, hess, rtol=1e-5, atol=1e-6 * max(h00, h11, h22))
+    _assert_derivatives(energy, c, r[4:7], [[h00, h10, h20], [h10, h11, h21], [h20, h21, h22]])
 
 
 def test_order4_leaves_overflow_to_the_gauss_path():
