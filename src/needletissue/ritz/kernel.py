@@ -203,6 +203,43 @@ def _energy2(c, Q, S, W, cos_term, kb, F, phi3, grad, g, H):
     return eb + es - wk, eb, es, wk
 
 
+@njit(cache=True, fastmath=_FM, inline="always")
+def _spring_point_cos(w, v, d, a0, a1, a2, b0, b1, b2):
+    """One Gauss point (weight w) of the spring energy w (y/2 + y^2/4), y = v^2 (1 + d^2), with v = a . c and
+    d = b . c for three coefficients c: (energy, gradient (3), Hessian (6: 00 10 11 20 21 22)) in c."""
+    f = 1.0 + d * d
+    y = v * v * f
+    ey = 0.5 * w * (1.0 + y)
+    eyy = 0.5 * w
+    yv = 2.0 * v * f
+    yp = 2.0 * v * v * d
+    ev = ey * yv
+    ep = ey * yp
+    evv = eyy * yv * yv + ey * 2.0 * f
+    evp = eyy * yv * yp + ey * 4.0 * v * d
+    epp = eyy * yp * yp + ey * 2.0 * v * v
+    # H = sum [a b] [[evv, evp], [evp, epp]] [a b]^T, through u = evv a + evp b, t = evp a + epp b
+    u0 = evv * a0 + evp * b0
+    u1 = evv * a1 + evp * b1
+    u2 = evv * a2 + evp * b2
+    t0 = evp * a0 + epp * b0
+    t1 = evp * a1 + epp * b1
+    t2 = evp * a2 + epp * b2
+    return (w * (0.5 * y + 0.25 * y * y), ev * a0 + ep * b0, ev * a1 + ep * b1, ev * a2 + ep * b2,
+            u0 * a0 + t0 * b0, u1 * a0 + t1 * b0, u1 * a1 + t1 * b1, u2 * a0 + t2 * b0, u2 * a1 + t2 * b1,
+            u2 * a2 + t2 * b2)
+
+
+@njit(cache=True, fastmath=_FM, inline="always")
+def _spring_point(w, v, a0, a1, a2):
+    """_spring_point_cos without the cos term (y = v^2, v = a . c)."""
+    y = v * v
+    ev = w * (1.0 + y) * v
+    evv = 2.0 * w * v * v + w * (1.0 + y)
+    return (w * (0.5 * y + 0.25 * y * y), ev * a0, ev * a1, ev * a2, evv * a0 * a0, evv * a1 * a0, evv * a1 * a1,
+            evv * a2 * a0, evv * a2 * a1, evv * a2 * a2)
+
+
 @njit(cache=True, fastmath=_FM)
 def _energy3(c, Q, S, W, cos_term, kb, F, phi3, grad, g, H):
     c0 = c[0]
@@ -237,58 +274,34 @@ def _energy3(c, Q, S, W, cos_term, kb, F, phi3, grad, g, H):
             b0 = S[3, q]
             b1 = S[4, q]
             b2 = S[5, q]
-            w = W[q]
-            v = c0 * a0 + c1 * a1 + c2 * a2
-            d = c0 * b0 + c1 * b1 + c2 * b2
-            f = 1.0 + d * d
-            y = v * v * f
-            es += w * (0.5 * y + 0.25 * y * y)
-            ey = 0.5 * w * (1.0 + y)
-            eyy = 0.5 * w
-            yv = 2.0 * v * f
-            yp = 2.0 * v * v * d
-            ev = ey * yv
-            ep = ey * yp
-            evv = eyy * yv * yv + ey * 2.0 * f
-            evp = eyy * yv * yp + ey * 4.0 * v * d
-            epp = eyy * yp * yp + ey * 2.0 * v * v
-            # H = sum [a b] [[evv, evp], [evp, epp]] [a b]^T, through u = evv a + evp b, t = evp a + epp b
-            u0 = evv * a0 + evp * b0
-            u1 = evv * a1 + evp * b1
-            u2 = evv * a2 + evp * b2
-            t0 = evp * a0 + epp * b0
-            t1 = evp * a1 + epp * b1
-            t2 = evp * a2 + epp * b2
-            g0 += ev * a0 + ep * b0
-            g1 += ev * a1 + ep * b1
-            g2 += ev * a2 + ep * b2
-            h00 += u0 * a0 + t0 * b0
-            h10 += u1 * a0 + t1 * b0
-            h11 += u1 * a1 + t1 * b1
-            h20 += u2 * a0 + t2 * b0
-            h21 += u2 * a1 + t2 * b1
-            h22 += u2 * a2 + t2 * b2
+            r = _spring_point_cos(W[q], c0 * a0 + c1 * a1 + c2 * a2, c0 * b0 + c1 * b1 + c2 * b2, a0, a1, a2,
+                                  b0, b1, b2)
+            es += r[0]
+            g0 += r[1]
+            g1 += r[2]
+            g2 += r[3]
+            h00 += r[4]
+            h10 += r[5]
+            h11 += r[6]
+            h20 += r[7]
+            h21 += r[8]
+            h22 += r[9]
     else:
         for q in range(Q):
             a0 = S[0, q]
             a1 = S[1, q]
             a2 = S[2, q]
-            w = W[q]
-            v = c0 * a0 + c1 * a1 + c2 * a2
-            y = v * v
-            es += w * (0.5 * y + 0.25 * y * y)
-            ey = 0.5 * w * (1.0 + y)
-            ev = ey * 2.0 * v
-            evv = 2.0 * w * v * v + ey * 2.0
-            g0 += ev * a0
-            g1 += ev * a1
-            g2 += ev * a2
-            h00 += evv * a0 * a0
-            h10 += evv * a1 * a0
-            h11 += evv * a1 * a1
-            h20 += evv * a2 * a0
-            h21 += evv * a2 * a1
-            h22 += evv * a2 * a2
+            r = _spring_point(W[q], c0 * a0 + c1 * a1 + c2 * a2, a0, a1, a2)
+            es += r[0]
+            g0 += r[1]
+            g1 += r[2]
+            g2 += r[3]
+            h00 += r[4]
+            h10 += r[5]
+            h11 += r[6]
+            h20 += r[7]
+            h21 += r[8]
+            h22 += r[9]
     g[0] = g0
     g[1] = g1
     g[2] = g2
@@ -895,63 +908,41 @@ def _energy4g(x0, x1, x2, tab, n, il, cos_term, kb, F, grad):
     if cos_term:
         for q in range(n):
             s = tab[o + q]
-            w = tab[o + n + q]
             a0 = s * s  # dv/d(a, b, c) and d(dv/dz)/d(a, b, c)
             a1 = a0 * s
             a2 = a1 * s
             b0 = 2.0 * s * il
             b1 = 3.0 * a0 * il
             b2 = 4.0 * a1 * il
-            v = a * a0 + b * a1 + c * a2
-            d = a * b0 + b * b1 + c * b2
-            f = 1.0 + d * d
-            y = v * v * f
-            es += w * (0.5 * y + 0.25 * y * y)
-            ey = 0.5 * w * (1.0 + y)
-            eyy = 0.5 * w
-            yv = 2.0 * v * f
-            yp = 2.0 * v * v * d
-            ev = ey * yv
-            ep = ey * yp
-            evv = eyy * yv * yv + ey * 2.0 * f
-            evp = eyy * yv * yp + ey * 4.0 * v * d
-            epp = eyy * yp * yp + ey * 2.0 * v * v
-            u0 = evv * a0 + evp * b0
-            u1 = evv * a1 + evp * b1
-            u2 = evv * a2 + evp * b2
-            t0 = evp * a0 + epp * b0
-            t1 = evp * a1 + epp * b1
-            t2 = evp * a2 + epp * b2
-            ga += ev * a0 + ep * b0
-            gb += ev * a1 + ep * b1
-            gc += ev * a2 + ep * b2
-            haa += u0 * a0 + t0 * b0
-            hab += u1 * a0 + t1 * b0
-            hbb += u1 * a1 + t1 * b1
-            hac += u2 * a0 + t2 * b0
-            hbc += u2 * a1 + t2 * b1
-            hcc += u2 * a2 + t2 * b2
+            r = _spring_point_cos(tab[o + n + q], a * a0 + b * a1 + c * a2, a * b0 + b * b1 + c * b2, a0, a1, a2,
+                                  b0, b1, b2)
+            es += r[0]
+            ga += r[1]
+            gb += r[2]
+            gc += r[3]
+            haa += r[4]
+            hab += r[5]
+            hbb += r[6]
+            hac += r[7]
+            hbc += r[8]
+            hcc += r[9]
     else:
         for q in range(n):
             s = tab[o + q]
-            w = tab[o + n + q]
             a0 = s * s
             a1 = a0 * s
             a2 = a1 * s
-            v = a * a0 + b * a1 + c * a2
-            y = v * v
-            es += w * (0.5 * y + 0.25 * y * y)
-            ev = 0.5 * w * (1.0 + y) * 2.0 * v
-            evv = 2.0 * w * v * v + w * (1.0 + y)
-            ga += ev * a0
-            gb += ev * a1
-            gc += ev * a2
-            haa += evv * a0 * a0
-            hab += evv * a1 * a0
-            hbb += evv * a1 * a1
-            hac += evv * a2 * a0
-            hbc += evv * a2 * a1
-            hcc += evv * a2 * a2
+            r = _spring_point(tab[o + n + q], a * a0 + b * a1 + c * a2, a0, a1, a2)
+            es += r[0]
+            ga += r[1]
+            gb += r[2]
+            gc += r[3]
+            haa += r[4]
+            hab += r[5]
+            hbb += r[6]
+            hac += r[7]
+            hbc += r[8]
+            hcc += r[9]
     # chain rule to the basis coefficients: g_x = M g_(a,b,c), H_x = M H M^T, plus bending and load
     g0 = kb * x0 - F * tab[0] + _M4[0, 0] * ga
     g1 = kb * x1 - F * tab[1] + _M4[1, 0] * ga + _M4[1, 1] * gb
