@@ -77,13 +77,15 @@ class _Bodies:
     triangle of the free-free block K11, whose CSR pattern is built once, instead of summing the bodies'
     global matrices, partitioning the sum, testing it for symmetry and cutting out its triangle at
     every iteration (0.4 s per iteration of the one-needle model, docs/bench.md). The bodies'
-    hyperelastic laws have symmetric tangents (second derivatives of an energy)."""
+    hyperelastic laws have symmetric tangents (second derivatives of an energy). One body's global
+    matrix is alive at a time (FElupe's copy in its results is dropped): ~130 MB less at the peak
+    of the one-needle model."""
 
     def __init__(self, items, bodies, dof1, dof0, ndof):
         self.items, self.bodies = items, bodies
         self.dof1, self.dof0, self.n = dof1, dof0, ndof
-        self.patterns = None  # each body's (indptr, indices)
-        self.where = None     # for each stored value of the bodies' matrices, its slot in K11's upper data (0: none)
+        self.indptrs = None  # each body's CSR indptr, to detect a changed pattern
+        self.where = None    # per body: each stored value's slot in K11's upper data (0: none), int32
 
     def fun(self, x):
         f = np.zeros(self.n)
@@ -95,52 +97,79 @@ class _Bodies:
             f[:r.shape[0]] += r.toarray().ravel()
         return f
 
+    def _matrix(self, body):
+        K = body.assemble.matrix()
+        # FElupe keeps the matrix and its element matrices (900 values a tet10, ~80 MB for the needle
+        # model) for the next call; dropped, one body's are alive at a time, for ~20 ms of page faults
+        # per tangent
+        r = body.results
+        r.stiffness = r.stiffness_values = None
+        if hasattr(r, "_stiffness_values"):
+            r._stiffness_values = None
+        if body.assemble.multiplier is not None:
+            K = K * body.assemble.multiplier
+        return K
+
     def jac(self, x):
-        """At the state of the last fun(x), as FElupe's own assembly."""
+        """At the state of the last fun(x), as FElupe's own assembly: (upper triangle of K11, K10)."""
         import scipy.sparse as sp
 
-        mats = [b.assemble.matrix() for b in self.bodies]
-        if self.patterns is None or not all(
-                np.array_equal(K.indptr, p) and np.array_equal(K.indices, i) for K, (p, i) in zip(mats, self.patterns)):
-            self._build(mats)
-        values = np.concatenate([K.data if b.assemble.multiplier is None else K.data * b.assemble.multiplier
-                                 for K, b in zip(mats, self.bodies)])
-        data = np.bincount(self.where, weights=values, minlength=len(self.indices) + 1)[1:]
-        upper = sp.csr_matrix((data, self.indices, self.indptr), shape=(len(self.dof1),) * 2)
+        if self.where is None:  # the first call builds the patterns from all bodies' matrices at once
+            mats = iter(self._build([self._matrix(b) for b in self.bodies]))
+        else:
+            mats = (self._matrix(b) for b in self.bodies)
+        data = np.zeros(len(self.indices) + 1)
+        data10 = np.zeros(self.k10.nnz)
+        for K, w, p, (sel, slot) in zip(mats, self.where, self.indptrs, self.where10):
+            if len(w) != K.nnz or not np.array_equal(K.indptr, p):  # not seen with FElupe's cached patterns
+                self.where = None
+                return self.jac(x)
+            data += np.bincount(w, weights=K.data, minlength=len(data))
+            data10 += np.bincount(slot, weights=K.data[sel], minlength=len(data10))
+            del K
+        upper = sp.csr_matrix((data[1:], self.indices, self.indptr), shape=(len(self.dof1),) * 2)
         upper.has_sorted_indices = True
-        return upper, mats
+        return upper, sp.csr_matrix((data10, self.k10.indices, self.k10.indptr), shape=self.k10.shape)
 
     def _build(self, mats):
+        """The patterns of K11's upper triangle and of K10 from the bodies' matrices, and where each
+        body's stored values go in them."""
         import scipy.sparse as sp
 
-        n1 = len(self.dof1)
+        n1, n0 = len(self.dof1), len(self.dof0)
         union = sum(sp.csr_matrix((np.ones(K.nnz), K.indices, K.indptr), shape=(self.n, self.n)) for K in mats)
         upper = sp.triu(union[self.dof1][:, self.dof1], format="csr")  # CSR order: sorted row * n1 + col
         upper.sort_indices()
+        k10 = union[self.dof1][:, self.dof0].tocsr()
+        k10.sort_indices()
+        del union
         self.indptr, self.indices = upper.indptr.astype(np.int32), upper.indices.astype(np.int32)
         slots = np.repeat(np.arange(n1, dtype=np.int64), np.diff(upper.indptr)) * n1 + upper.indices
+        slots10 = np.repeat(np.arange(n1, dtype=np.int64), np.diff(k10.indptr)) * n0 + k10.indices
+        self.k10 = k10
+        del upper
         free = np.full(self.n, -1, np.int64)
         free[self.dof1] = np.arange(n1)
-        where = []
+        fixed = np.full(self.n, -1, np.int64)
+        fixed[self.dof0] = np.arange(n0)
+        self.where, self.where10 = [], []
         for K in mats:
-            r = free[np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))]
-            c = free[K.indices]
+            rows = np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))
+            r, c, c0 = free[rows], free[K.indices], fixed[K.indices]
             keep = (r >= 0) & (c >= r)
-            w = np.zeros(K.nnz, np.intp)  # slot 0 collects the values outside K11's upper triangle
+            w = np.zeros(K.nnz, np.int32)  # slot 0 collects the values outside K11's upper triangle
             w[keep] = np.searchsorted(slots, r[keep] * n1 + c[keep]) + 1
-            where.append(w)
-        self.where = np.concatenate(where)
-        self.patterns = [(K.indptr.copy(), K.indices.copy()) for K in mats]
+            self.where.append(w)
+            sel = np.flatnonzero((r >= 0) & (c0 >= 0))
+            self.where10.append((sel, np.searchsorted(slots10, r[sel] * n0 + c0[sel])))
+        self.indptrs = [K.indptr.copy() for K in mats]
+        return mats
 
     def solve(self, A, b, x, dof1, dof0, ext0, solver):
-        """FElupe's partitioned solve, K11 du1 = b1 - K10 du0, with A = (upper triangle of K11, body matrices)."""
-        upper, mats = A
+        """FElupe's partitioned solve, K11 du1 = b1 - K10 du0, with A = (upper triangle of K11, K10)."""
+        upper, k10 = A
         du0 = ext0 - np.concatenate([f.values.ravel() for f in x.fields])[dof0]
-        rhs = b[dof1]
-        if np.any(du0):  # prescribed displacements changed: K10 du0 from the bodies' matrices
-            full = np.zeros(self.n)
-            full[dof0] = du0
-            rhs = rhs - sum(K @ full[:K.shape[1]] for K in mats)[dof1]
+        rhs = b[dof1] - k10 @ du0 if np.any(du0) else b[dof1]
         du = np.empty(self.n)
         du[dof1] = solver(upper, rhs, upper=True)
         du[dof0] = du0
