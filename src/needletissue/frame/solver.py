@@ -577,15 +577,15 @@ class BatchResult:
 
 
 LANES = 32          # batch: solves integrated in lock-step (one vectorised integration per pin and pass)
-CELL_MIN = 200      # batch: fewest wrenches that get their own anchor (an anchor costs ~20 solves)
+CELL_MIN = 200      # batch: fewest wrenches that get their own anchor (answer, tangent and its derivatives)
 CELL_SPREAD = 0.1   # batch: a cell wider than this (scaled wrench, relative to its centre) is split
-DERIV_MIN = 1000    # batch: fewest wrenches for the anchor's tangent derivatives (12 more solves and tangents)
 ANCHOR_FLOOR = 1e-11  # batch: the anchor's polish tolerance never below this (scaled residual)
 
 
-def _anchor(disc: Discretisation, Wa: np.ndarray, derivatives: bool):
-    """(Wa, y, end states, exact inverse tangent, its derivatives (6, n, n) along the wrench or zeros) at the
-    answer to Wa; the rest state (zero wrench, H0) when Wa is zero or its solve fails."""
+def _anchor(disc: Discretisation, Wa: np.ndarray):
+    """(Wa, y, end states, exact inverse tangent, its derivatives (6, n, n) along the wrench; zeros if a tangent
+    is singular) at the answer to Wa; the rest state (zero wrench, H0, no derivatives) when Wa is zero or its solve
+    fails."""
     k = _kernel()
     nn = disc.NX.shape[0]
     N = 6 * nn + 6
@@ -600,41 +600,35 @@ def _anchor(disc: Discretisation, Wa: np.ndarray, derivatives: bool):
         object.__setattr__(disc, "rest", rest)
     if not np.any(Wa):
         return rest
-    H0 = _inverse_tangent(disc)
-
-    def at(W, y, H):
-        # polished far below the batch's tolerance (the predictors start from it), but not below the residual's
-        # rounding floor (~2e-12 scaled, measured): a tighter polish failed for 10-17 of the 256 anchors of 100,000
-        # random wrenches below ~130 N, and those cells started from rest
-        y = y.copy()
-        E = np.empty((nn, 19))
-        tol = max(1e-3 * _tol(disc, W), ANCHOR_FLOOR)
-        it, st = k.broyden(y, H.copy(), disc.NX, disc.P0, W, *G, tol, BROYDEN_MAXIT, E)
-        if st != k.OK:
-            return None
-        J = np.empty((N, N))
-        k.jacobian(y, 1.0, disc.NX, disc.P0, W, *G, J)
-        try:
-            return y, E, np.linalg.inv(J)
-        except np.linalg.LinAlgError:
-            return None
-
-    got = at(Wa, np.zeros(N), H0)
-    if got is None:
+    # polished far below the batch's tolerance (the predictors start from it), but not below the residual's
+    # rounding floor (~2e-12 scaled, measured): a tighter polish failed for 10-17 of the 256 anchors of 100,000
+    # random wrenches below ~130 N, and those cells started from rest
+    ya = np.zeros(N)
+    Ea = np.empty((nn, 19))
+    tol = max(1e-3 * _tol(disc, Wa), ANCHOR_FLOOR)
+    it, st = k.broyden(ya, _inverse_tangent(disc).copy(), disc.NX, disc.P0, Wa, *G, tol, BROYDEN_MAXIT, Ea)
+    if st != k.OK:
         return rest
-    ya, Ea, Ha = got
+    J = np.empty((N, N))
+    k.jacobian(ya, 1.0, disc.NX, disc.P0, Wa, *G, J)
+    try:
+        Ha = np.linalg.inv(J)
+    except np.linalg.LinAlgError:
+        return rest
     D = np.zeros((6, N, N))
-    if derivatives:  # central differences, 0.3 % of the wrench's scaled size per component
-        P = disc.P
-        step = 3e-3 * max(float(np.abs(Wa[:3]).max() / P[k.FS]), float(np.abs(Wa[3:]).max() / P[k.MS]))
-        for d in range(6):
-            e = np.zeros(6)
-            e[d] = step * (P[k.FS] if d < 3 else P[k.MS])
-            hp, hn = at(Wa + e, ya, Ha), at(Wa - e, ya, Ha)
-            if hp is None or hn is None:
-                D[:] = 0.0
-                break
-            D[d] = (hp[2] - hn[2]) / (2 * e[d])
+    # dH/dW_d = -H (dJ/dW_d) H: the tangent at the answer moved along its first-order path y' = -Ha dr/dW_d
+    # (the wrench enters only the clamp's rows, dr/dW_d = e_d / scale), forward differences of 0.3 % of the
+    # wrench's scaled size: one Jacobian each, no solve (the error is O(step) in D: far below D's own effect)
+    P = disc.P
+    step = 3e-3 * max(float(np.abs(Wa[:3]).max() / P[k.FS]), float(np.abs(Wa[3:]).max() / P[k.MS]))
+    for d in range(6):
+        sc = P[k.FS] if d < 3 else P[k.MS]
+        k.jacobian(ya - step * Ha[:, 6 * nn + d], 1.0, disc.NX, disc.P0, Wa, *G, J)
+        try:
+            D[d] = (np.linalg.inv(J) - Ha) / (step * sc)
+        except np.linalg.LinAlgError:
+            D[:] = 0.0
+            break
     return Wa, ya, Ea, Ha, D
 
 
@@ -699,8 +693,8 @@ def solve_batch(forces, moments=None, model: FrameModel | None = None, *, method
         Ws = np.hstack([F / P[k.FS], M / P[k.MS]])
         cells = []
         _cells(Ws, todo, cells)
-        anchors = [_anchor(disc, np.zeros(6) if idx.size < CELL_MIN else np.hstack([F[idx], M[idx]]).mean(0),
-                           idx.size >= DERIV_MIN) for idx in cells]
+        anchors = [_anchor(disc, np.zeros(6) if idx.size < CELL_MIN else np.hstack([F[idx], M[idx]]).mean(0))
+                   for idx in cells]
         has = [i for i, a in enumerate(anchors) if a[4].any()]  # anchors with tangent derivatives
         Dk = np.full(len(cells), -1, np.int64)
         Dk[has] = np.arange(len(has))
