@@ -582,10 +582,11 @@ CELL_SPREAD = 0.1   # batch: a cell wider than this (scaled wrench, relative to 
 ANCHOR_FLOOR = 1e-11  # batch: the anchor's polish tolerance never below this (scaled residual)
 
 
-def _anchor(disc: Discretisation, Wa: np.ndarray):
-    """(Wa, y, end states, exact inverse tangent, its derivatives (6, n, n) along the wrench; zeros if a tangent
-    is singular) at the answer to Wa; the rest state (zero wrench, H0, no derivatives) when Wa is zero or its solve
-    fails."""
+def _anchor(disc: Discretisation, Wa: np.ndarray, vary=np.ones(6, bool), near=None):
+    """(Wa, y, end states, exact inverse tangent, its derivatives (6, n, n) along the wrench components that
+    `vary` (the others zero, as all of them if a tangent is singular)) at the answer to Wa; the rest state (zero
+    wrench, H0, no derivatives) when Wa is zero or its solve fails. near: another anchor to start from (a
+    neighbouring cell's: a few quasi-Newton steps instead of ~20 from rest)."""
     k = _kernel()
     nn = disc.NX.shape[0]
     N = 6 * nn + 6
@@ -603,12 +604,16 @@ def _anchor(disc: Discretisation, Wa: np.ndarray):
     # polished far below the batch's tolerance (the predictors start from it), but not below the residual's
     # rounding floor (~2e-12 scaled, measured): a tighter polish failed for 10-17 of the 256 anchors of 100,000
     # random wrenches below ~130 N, and those cells started from rest
-    ya = np.zeros(N)
-    Ea = np.empty((nn, 19))
     tol = max(1e-3 * _tol(disc, Wa), ANCHOR_FLOOR)
-    it, st = k.broyden(ya, _inverse_tangent(disc).copy(), disc.NX, disc.P0, Wa, *G, tol, BROYDEN_MAXIT, Ea)
+    st = k.MAX_ITER
+    if near is not None and near[0].any():  # the wrench enters the residual additively: near's end states serve
+        ya, Ea = near[1].copy(), near[2].copy()
+        st = k.broyden(ya, near[3].copy(), disc.NX, disc.P0, Wa, *G, tol, BROYDEN_MAXIT, Ea, True)[1]
     if st != k.OK:
-        return rest
+        ya = np.zeros(N)
+        Ea = np.empty((nn, 19))
+        if k.broyden(ya, _inverse_tangent(disc).copy(), disc.NX, disc.P0, Wa, *G, tol, BROYDEN_MAXIT, Ea)[1] != k.OK:
+            return rest
     J = np.empty((N, N))
     k.jacobian(ya, 1.0, disc.NX, disc.P0, Wa, *G, J)
     try:
@@ -621,7 +626,7 @@ def _anchor(disc: Discretisation, Wa: np.ndarray):
     # wrench's scaled size: one Jacobian each, no solve (the error is O(step) in D: far below D's own effect)
     P = disc.P
     step = 3e-3 * max(float(np.abs(Wa[:3]).max() / P[k.FS]), float(np.abs(Wa[3:]).max() / P[k.MS]))
-    for d in range(6):
+    for d in np.flatnonzero(vary):  # a component constant over the cell multiplies its D by zero
         sc = P[k.FS] if d < 3 else P[k.MS]
         k.jacobian(ya - step * Ha[:, 6 * nn + d], 1.0, disc.NX, disc.P0, Wa, *G, J)
         try:
@@ -693,8 +698,11 @@ def solve_batch(forces, moments=None, model: FrameModel | None = None, *, method
         Ws = np.hstack([F / P[k.FS], M / P[k.MS]])
         cells = []
         _cells(Ws, todo, cells)
-        anchors = [_anchor(disc, np.zeros(6) if idx.size < CELL_MIN else np.hstack([F[idx], M[idx]]).mean(0))
-                   for idx in cells]
+        anchors = []
+        for idx in cells:  # neighbouring cells follow each other (the split's order): each anchor starts from the last
+            w = np.hstack([F[idx], M[idx]])
+            anchors.append(_anchor(disc, w.mean(0), w.min(0) < w.max(0), anchors[-1] if anchors else None)
+                           if idx.size >= CELL_MIN else _anchor(disc, np.zeros(6)))
         has = [i for i, a in enumerate(anchors) if a[4].any()]  # anchors with tangent derivatives
         Dk = np.full(len(cells), -1, np.int64)
         Dk[has] = np.arange(len(has))
