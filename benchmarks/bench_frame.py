@@ -25,6 +25,7 @@ FE_CPU_PER_FORCE_S = 86.0 / 3
 N_BATCH = 2_000
 BIG_BATCH = 100_000
 _MED = {}
+_STEPS = {}  # batch: mean quasi-Newton steps per solve, (auto, rest)
 
 
 def _cpu(fn, n, rounds=7):
@@ -52,8 +53,9 @@ def _summary():
         auto, rest = _MED[key]
         rate = 1 / auto
         verdict = "met" if rate >= 100_000 else f"x{100_000 / rate:.1f} short"
-        print(f"frame {key}: {rate:,.0f} solves/s per core, CPU median (goal >= 100,000: {verdict}); "
-              f"x{rest / auto:.1f} the per-row solve from rest ({1 / rest:,.0f}/s, method='rest')")
+        print(f"frame {key}: {rate:,.0f} solves/s per core, CPU median (goal >= 100,000: {verdict}), "
+              f"{_STEPS[key][0]:.2f} steps per solve; x{rest / auto:.1f} the per-row solve from rest "
+              f"({1 / rest:,.0f}/s, method='rest', {_STEPS[key][1]:.2f} steps)")
     if "scipy_root" in _MED and "pose" in _MED:
         print(f"scipy.optimize.root on the same residual: {_MED['scipy_root'][1] * 1e6:.0f} us CPU, "
               f"x{_MED['scipy_root'][1] / _MED['pose'][1]:.1f} the compiled quasi-Newton")
@@ -117,19 +119,23 @@ def test_batch(benchmark):
     assert b.max_needle_deflection_mm.shape == (N_BATCH,)
     for name, (F, M) in small.items():
         per = {"auto": [], "rest": []}
+        steps = {}
         for _ in range(5):
             for method in per:
                 t0 = time.process_time()
-                frame.solve_batch(F, M, model=MODEL, method=method)
+                out = frame.solve_batch(F, M, model=MODEL, method=method)
                 per[method].append((time.process_time() - t0) / N_BATCH)
+                steps[method] = float(out.iterations.mean())
         _MED[f"batch {name} {N_BATCH:,}"] = float(np.median(per["auto"])), float(np.median(per["rest"]))
+        _STEPS[f"batch {name} {N_BATCH:,}"] = steps["auto"], steps["rest"]
     for name, (F, M) in big.items():
         per = []
         for _ in range(3):
             t0 = time.process_time()
-            frame.solve_batch(F, M, model=MODEL)
+            out = frame.solve_batch(F, M, model=MODEL)
             per.append((time.process_time() - t0) / BIG_BATCH)
         _MED[f"batch {name} {BIG_BATCH:,}"] = float(np.median(per)), _MED[f"batch {name} {N_BATCH:,}"][1]
+        _STEPS[f"batch {name} {BIG_BATCH:,}"] = float(out.iterations.mean()), _STEPS[f"batch {name} {N_BATCH:,}"][1]
 
 
 def test_scipy_root_baseline(benchmark):

@@ -735,14 +735,15 @@ def integrate_lanes(s, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, k1, k2, k3, k4, t, 
 
 
 @njit(cache=True)
-def batch_anchor(F, M, Wa, ya, Ea, Ha, D, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, maxit, lanes,
-                 out, status):
-    """N wrenches near one anchor wrench Wa (answer ya, end states Ea, exact inverse tangent Ha and its
-    derivatives D (6, n, n) along the six wrench components): each starts from the anchor's predictor
-    ya - H(Wa + dw/2) r(ya, W) (the secant's inverse tangent at the midpoint: error O(|dw|^3)), then Broyden
-    with H(W) = Ha + sum dw_d D_d. `lanes` solves run in lock-step (one vectorised integration per pin and pass);
-    a lane whose solve converged takes the next wrench. A solve that fails here gets status MAX_ITER or
-    NOT_FINITE (the caller solves it again the robust way); never an unconverged answer."""
+def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, maxit,
+                 lanes, out, status):
+    """N wrenches, row m near the anchor wrench Wa[c], c = cell[m] (answer ya[c], end states Ea[c], exact inverse
+    tangent Ha[c] and, if Dk[c] >= 0, its derivatives D[Dk[c]] (6, n, n) along the six wrench components): each
+    starts from its anchor's predictor ya - H(Wa + dw/2) r(ya, W) (the secant's inverse tangent at the midpoint:
+    error O(|dw|^3)), then Broyden with H(W) = Ha + sum dw_d D_d. `lanes` solves run in lock-step (one vectorised
+    integration per pin and pass); a lane whose solve converged takes the next wrench, of any cell (one call for
+    the whole batch: lanes idle only at its end). A solve that fails here gets status MAX_ITER or NOT_FINITE (the
+    caller solves it again the robust way); never an unconverged answer."""
     nn = NX.shape[0]
     N = 6 * nn + 6
     n = F.shape[0]
@@ -784,20 +785,28 @@ def batch_anchor(F, M, Wa, ya, Ea, Ha, D, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, 
                 for i in range(3):
                     W[i] = F[m, i]
                     W[3 + i] = M[m, i]
-                residual(Ea, ya[6 * nn:], NX, P0, W, 1.0, P, r0)
+                ca = cell[m]
+                residual(Ea[ca], ya[ca, 6 * nn:], NX, P0, W, 1.0, P, r0)
                 H = Hs[l]
-                c0, c1, c2 = W[0] - Wa[0], W[1] - Wa[1], W[2] - Wa[2]
-                c3, c4, c5 = W[3] - Wa[3], W[4] - Wa[4], W[5] - Wa[5]
-                for i in range(N):
-                    for j in range(N):
-                        H[i, j] = (Ha[i, j] + c0 * D[0, i, j] + c1 * D[1, i, j] + c2 * D[2, i, j] + c3 * D[3, i, j]
-                                   + c4 * D[4, i, j] + c5 * D[5, i, j])
+                A = Ha[ca]
+                dk = Dk[ca]
+                if dk >= 0:
+                    c0, c1, c2 = W[0] - Wa[ca, 0], W[1] - Wa[ca, 1], W[2] - Wa[ca, 2]
+                    c3, c4, c5 = W[3] - Wa[ca, 3], W[4] - Wa[ca, 4], W[5] - Wa[ca, 5]
+                    for i in range(N):
+                        for j in range(N):
+                            H[i, j] = (A[i, j] + c0 * D[dk, 0, i, j] + c1 * D[dk, 1, i, j] + c2 * D[dk, 2, i, j]
+                                       + c3 * D[dk, 3, i, j] + c4 * D[dk, 4, i, j] + c5 * D[dk, 5, i, j])
+                else:
+                    for i in range(N):
+                        for j in range(N):
+                            H[i, j] = A[i, j]
                 # ya - H(Wa + dw/2) r0, H linear in dw: ya - (Ha + H(W)) r0 / 2
                 for i in range(N):
                     v = 0.0
                     for j in range(N):
-                        v += (Ha[i, j] + H[i, j]) * r0[j]
-                    Y[l, i] = ya[i] - 0.5 * v
+                        v += (A[i, j] + H[i, j]) * r0[j]
+                    Y[l, i] = ya[ca, i] - 0.5 * v
                 active += 1
         if active == 0:
             break
