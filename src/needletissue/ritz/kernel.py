@@ -704,7 +704,7 @@ def _energy3c(c0, c1, tab, kb, F, grad, pw):
     return eb + es - wk, eb, es, wk, g0, g1, h00, h10, h11
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _powers(c0, c1, pw):
     """(a, b) of the order-3 coefficients c, and pw[k] = a^k, pw[9 + k] = b^k (k <= 8)."""
     a = 0.5 * c0 - 0.5 * _R3 * c1
@@ -717,7 +717,7 @@ def _powers(c0, c1, pw):
     return a, b
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _forms(a, b, tab, pw, k):
     """The triples of Hessian forms (degrees 0, 2, 4, 6) from tab[k] at (a, b), and by Euler the first
     derivatives and the value of the forms they derive from: (P_1, P_2, P, sums of the triples) for
@@ -1153,14 +1153,32 @@ def _newton4(c, F, kb, tab, n, il, cos_term):
 
 @njit(cache=True)
 def _sup4(x0, x1, x2, grid):
-    """max over the grid of |v| for order-4 basis coefficients x, in monomial form (vectorised)."""
+    """max over the grid s = k/64 of |v| for order-4 basis coefficients x, in monomial form. Between the
+    critical points of v = s^2 (a + b s + c s^2) (s = 0 and the roots of 2a + 3b s + 4c s^2) |v| is
+    monotone, or falls to zero and rises: the grid maximum is at s = 1 or next to an interior critical
+    point, so only those points are evaluated (the 65-point scan cost ~100 ns)."""
     a = x0 * _M4[0, 0] + x1 * _M4[1, 0] + x2 * _M4[2, 0]
     b = x1 * _M4[1, 1] + x2 * _M4[2, 1]
     c = x2 * _M4[2, 2]
-    e = 0.0
-    for k in range(grid.shape[0]):
-        s = grid[k]
-        e = max(e, abs(s * s * (a + s * (b + s * c))))
+    n = grid.shape[0] - 1
+    s = grid[n]  # 1, evaluated as at the other points (the same round-off as a scan)
+    e = abs(s * s * (a + s * (b + s * c)))
+    r1 = r2 = -1.0
+    if c != 0.0:
+        disc = 9.0 * b * b - 32.0 * a * c
+        if disc >= 0.0:
+            q = -0.5 * (3.0 * b + np.copysign(np.sqrt(disc), b))
+            r1 = q / (4.0 * c)
+            if q != 0.0:
+                r2 = 2.0 * a / q
+    elif b != 0.0:
+        r1 = -2.0 * a / (3.0 * b)
+    for r in (r1, r2):
+        if 0.0 < r < 1.0:
+            k = int(r * n)
+            for i in range(k, min(k + 2, n + 1)):
+                s = grid[i]
+                e = max(e, abs(s * s * (a + s * (b + s * c))))
     return e
 
 
