@@ -699,7 +699,7 @@ def _energy3c(c0, c1, tab, kb, F, grad, pw):
             es += e
             off += d + 1
         return eb + es - wk, eb, es, wk, 0.0, 0.0, 0.0, 0.0, 0.0
-    ga, gb, es, haa, hab, hbb = _forms(a, b, tab, pw, _NV)
+    ga, gb, es, haa, hab, hbb = _forms(a, b, tab, pw, False)[:6]
     g0, g1, h00, h10, h11 = _to_c(kb, F, c0, c1, tab, ga, gb, haa, hab, hbb)
     return eb + es - wk, eb, es, wk, g0, g1, h00, h10, h11
 
@@ -718,21 +718,30 @@ def _powers(c0, c1, pw):
 
 
 @njit(cache=True, inline="always")
-def _forms(a, b, tab, pw, k):
-    """The triples of Hessian forms (degrees 0, 2, 4, 6) from tab[k] at (a, b), and by Euler the first
-    derivatives and the value of the forms they derive from: (P_1, P_2, P, sums of the triples) for
-    the triples (11, 12, 22) of P. At k = _NV: P_a, P_b, U_spring, H_aa, H_ab, H_bb; at k = _NV + _NH
-    (the order-4 forms at c = 0) the first and last two: P_c, H_ac, H_bc, H_cc."""
+def _forms(a, b, tab, pw, quartic):
+    """The Hessian forms (degrees 0, 2, 4, 6; triples aa, ab, bb from tab[_NV]) at (a, b), and by Euler
+    the gradient and the value of the spring energy: (P_a, P_b, U_spring, H_aa, H_ab, H_bb); with
+    quartic also the order-4 forms at c = 0 (triples ac, bc, cc from tab[_NV + _NH], same monomials):
+    P_c, H_ac, H_bc, H_cc (else zeros)."""
     p1 = p2 = val = h11 = h12 = h22 = 0.0
+    pc = hac = hbc = hcc = 0.0
+    k = _NV
     for m in range(0, 8, 2):
         s11 = 0.0
         s12 = 0.0
         s22 = 0.0
+        sac = 0.0
+        sbc = 0.0
+        scc = 0.0
         for j in range(m + 1):
             t = pw[m - j] * pw[9 + j]
             s11 += tab[k] * t
             s12 += tab[k + 1] * t
             s22 += tab[k + 2] * t
+            if quartic:
+                sac += tab[k + _NH] * t
+                sbc += tab[k + _NH + 1] * t
+                scc += tab[k + _NH + 2] * t
             k += 3
         q1 = (a * s11 + b * s12) * _INV[m]  # 1 / (d - 1)
         q2 = (a * s12 + b * s22) * _INV[m]
@@ -742,7 +751,12 @@ def _forms(a, b, tab, pw, k):
         h11 += s11
         h12 += s12
         h22 += s22
-    return p1, p2, val, h11, h12, h22
+        if quartic:
+            pc += (a * sac + b * sbc) * _INV[m]  # P_c has degree d - 1
+            hac += sac
+            hbc += sbc
+            hcc += scc
+    return p1, p2, val, h11, h12, h22, pc, hac, hbc, hcc
 
 
 @njit(cache=True)
@@ -751,8 +765,7 @@ def _step4c(c0, c1, F, kb, tab, pw):
     gradient and Hessian from the closed-form forms at c = 0 (exact like order 3's; no Gauss points).
     (positive definite, d0, d1, d2) in the order-4 basis coefficients."""
     a, b = _powers(c0, c1, pw)
-    ga, gb, es, haa, hab, hbb = _forms(a, b, tab, pw, _NV)
-    gc, _, _, hac, hbc, hcc = _forms(a, b, tab, pw, _NV + _NH)
+    ga, gb, es, haa, hab, hbb, gc, hac, hbc, hcc = _forms(a, b, tab, pw, True)
     r = _to_x4(kb, F, c0, c1, 0.0, tab[_PHI3], tab[_PHI3 + 1], tab[_PHI3 + 2], ga, gb, gc,
                haa, hab, hbb, hac, hbc, hcc)
     return _chol3(r[3], r[4], r[5], r[6], r[7], r[8], r[0], r[1], r[2], 0.0)
