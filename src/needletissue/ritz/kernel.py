@@ -535,9 +535,10 @@ def _post_any(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, grid, gphi, wk,
 #     0.5 s^4 u^2 + 0.5 s^6 (uw)^2 / l^2 + 0.25 [s^8 u^4 + 2 s^10 u^2 (uw)^2 / l^2 + s^12 (uw)^4 / l^4],
 # and each term a^(d-i) b^i of these forms carries exactly s^(e+i). Integrated over the layers, the
 # spring energy is therefore a sum of binary forms in (a, b) of degrees 2, 4, 6, 8 whose 24 coefficients
-# are integers times single moments mu_m = l sum_j k_j int_layer s^m ds (m = 4..20): exact, like the
-# Gauss rule, and independent of c and F. They are computed once per model (once per batch when only
-# the force varies); a Newton iteration then costs ~200 flops instead of a sum over 22 Gauss points.
+# are integers times single moments mu_m = l sum_j k_j int_layer s^m ds (m = 4..20; to 22 for the
+# order-4 step): exact, like the Gauss rule, and independent of c and F. They are computed once per
+# model (once per batch when only the force varies); a Newton iteration then costs ~200 flops instead
+# of a sum over 22 Gauss points.
 _R3 = np.sqrt(3.0)
 
 
