@@ -535,24 +535,44 @@ def _post_any(p, c, F, kb, l, z3, T, K, cos_term, A, Ad, GX, GW, grid, gphi, wk,
 #     0.5 s^4 u^2 + 0.5 s^6 (uw)^2 / l^2 + 0.25 [s^8 u^4 + 2 s^10 u^2 (uw)^2 / l^2 + s^12 (uw)^4 / l^4],
 # and each term a^(d-i) b^i of these forms carries exactly s^(e+i). Integrated over the layers, the
 # spring energy is therefore a sum of binary forms in (a, b) of degrees 2, 4, 6, 8 whose 24 coefficients
-# are integers times single moments mu_m = l sum_j k_j int_layer s^m ds (m = 4..20): exact, like the
-# Gauss rule, and independent of c and F. They are computed once per model (once per batch when only
-# the force varies); a Newton iteration then costs ~200 flops instead of a sum over 22 Gauss points.
+# are integers times single moments mu_m = l sum_j k_j int_layer s^m ds (m = 4..20; to 22 for the
+# order-4 step): exact, like the Gauss rule, and independent of c and F. They are computed once per
+# model (once per batch when only the force varies); a Newton iteration then costs ~200 flops instead
+# of a sum over 22 Gauss points.
 _R3 = np.sqrt(3.0)
-# coefficients, by power i of b, of u^2, u^4, (uw)^2, u^2 (uw)^2 and (uw)^4 (uw = 2a^2 + 5ab s + 3b^2 s^2)
-_U2 = np.array([1.0, 2.0, 1.0])
-_U4 = np.array([1.0, 4.0, 6.0, 4.0, 1.0])
-_UW2 = np.array([4.0, 20.0, 37.0, 30.0, 9.0])
-_U2UW2 = np.array([4.0, 28.0, 81.0, 124.0, 106.0, 48.0, 9.0])
-_UW4 = np.array([16.0, 160.0, 696.0, 1720.0, 2641.0, 2580.0, 1566.0, 540.0, 81.0])
+
+
+def _mul(p, q):
+    """Product of two polynomials in (b, c) (a is the homogeneous complement): coefficient [j, k] of
+    a^(d-j-k) b^j c^k, terms of c beyond c^2 dropped (the order-4 step needs them up to second order)."""
+    r = np.zeros((p.shape[0] + q.shape[0] - 1, 3))
+    for (j, k), x in np.ndenumerate(p):
+        for (jj, kk), y in np.ndenumerate(q):
+            if k + kk <= 2:
+                r[j + jj, k + kk] += x * y
+    return r
+
+
+# u = a + b s + c s^2 and w = 2a + 3b s + 4c s^2 (c: the order-4 coefficient, zero at order 3); every
+# term a^i b^j c^k of u^2, u^4, (uw)^2, u^2 (uw)^2, (uw)^4 carries s^(j + 2k)
+_U = np.array([[1.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+_UW = _mul(_U, np.array([[2.0, 4.0, 0.0], [3.0, 0.0, 0.0]]))
+_U2 = _mul(_U, _U)
+_U4 = _mul(_U2, _U2)
+_UW2 = _mul(_UW, _UW)
+_U2UW2 = _mul(_U2, _UW2)
+_UW4 = _mul(_UW2, _UW2)
 # Layout of the per-model table: the value forms (degrees 2, 4, 6, 8: 3 + 5 + 7 + 9 coefficients),
-# the Hessian forms (degrees 0, 2, 4, 6, triples aa, ab, bb: 3 (1 + 3 + 5 + 7)), phi0(s3), phi1(s3),
-# then the Gauss points of _post's reaction rule: s and k * weight * dz/dxi, layer by layer.
+# the Hessian forms (degrees 0, 2, 4, 6, triples aa, ab, bb: 3 (1 + 3 + 5 + 7)), the order-4 forms at
+# c = 0 (the same degrees, triples ac, bc, cc), phi0(s3), phi1(s3), phi2(s3) (order 4), then the Gauss
+# points of _post's reaction rule: s and k * weight * dz/dxi, layer by layer.
 # The gradient and the value follow from the Hessian forms by Euler's identity for a form P of
-# degree d: a P_a + b P_b = d P (and the same for P_a, P_b of degree d - 1).
+# degree d: a P_a + b P_b = d P (and the same for P_a, P_b of degree d - 1, and P_c at c = 0).
 _NV, _NH = 24, 48
-_NTAB = _NV + _NH + 2
-_INV = 1.0 / np.arange(1.0, 23.0)  # _INV[n - 1] = 1 / n (multiplications, not divisions, per moment)
+_PHI3 = _NV + 2 * _NH
+_NTAB = _PHI3 + 3
+_NMU = 108  # cubic_table's scratch
+_INV = 1.0 / np.arange(1.0, 25.0)  # _INV[n - 1] = 1 / n (multiplications, not divisions, per moment)
 # Beyond these the closed form hands the sample to the Gauss path, which then reports exactly what it
 # always did (overflow to inf/nan happens at other magnitudes in the two forms); both are far outside
 # any physical needle (|v| / l <= 0.25).
@@ -566,12 +586,32 @@ def table_size(nl, cos_term):
     return _NTAB + 2 * nl * (11 if cos_term else 7)
 
 
+@njit(cache=True, inline="always")
+def _value_forms(k, mu, l, il2, out, o):
+    """The coefficients of c^k (times a^i b^j, by j) of the spring energy's forms of degrees 2, 4, 6, 8
+    from the moments mu (a term b^j c^k of a form with s^e carries s^(e + j + 2k)), to out[o:]."""
+    il4 = il2 * il2
+    e = 2 * k
+    for i in range(3 - k):
+        out[o + i] = 0.5 * _U2[i, k] * mu[4 + e + i] * l
+    o += 3 - k
+    for i in range(5 - k):
+        out[o + i] = (0.5 * il2 * _UW2[i, k] * mu[6 + e + i] + 0.25 * _U4[i, k] * mu[8 + e + i]) * l
+    o += 5 - k
+    for i in range(7 - k):
+        out[o + i] = 0.5 * il2 * _U2UW2[i, k] * mu[10 + e + i] * l
+    o += 7 - k
+    for i in range(9 - k):
+        out[o + i] = 0.25 * il4 * _UW4[i, k] * mu[12 + e + i] * l
+
+
 @njit(cache=True)
 def cubic_table(l, T, K, z3, cos_term, tab, mu, GX, GW):
-    """Fill tab (table_size) with the order-3 energy forms of one model (geometry and k; not F).
-    mu: scratch of 66 floats (offsets, not slices: a slice costs two reference-count updates)."""
-    # mu[m] = sum_j k_j int_layer s^m ds; per layer [sa, sb]: mu[22 + n] = sb^n - sa^n, mu[44 + n] = sa^n
-    for m in range(22):
+    """Fill tab (table_size) with the order-3 energy forms of one model (geometry and k; not F), and
+    the order-4 forms at c = 0 of the error estimate's Newton step. mu: scratch of _NMU floats
+    (offsets, not slices: a slice costs two reference-count updates)."""
+    # mu[m] = sum_j k_j int_layer s^m ds; per layer [sa, sb]: mu[24 + n] = sb^n - sa^n, mu[48 + n] = sa^n
+    for m in range(24):
         mu[m] = 0.0
     il = 1.0 / l
     sa = 0.0
@@ -579,49 +619,56 @@ def cubic_table(l, T, K, z3, cos_term, tab, mu, GX, GW):
         h = T[j] * il
         sb = sa + h
         # D_(m+k) = sb^k D_m + sa^m D_k: sums of positive terms (no cancellation in thin layers),
-        # and with k = 4 four independent chains instead of one of length 20
-        mu[23] = h
-        mu[44] = 1.0
-        mu[45] = sa
+        # and with k = 4 four independent chains instead of one of length 22
+        mu[25] = h
+        mu[48] = 1.0
+        mu[49] = sa
         for n in range(2, 5):
-            mu[22 + n] = sb * mu[21 + n] + mu[43 + n] * h
-            mu[44 + n] = mu[43 + n] * sa
+            mu[24 + n] = sb * mu[23 + n] + mu[47 + n] * h
+            mu[48 + n] = mu[47 + n] * sa
         sb2 = sb * sb
         sb4 = sb2 * sb2
-        d4 = mu[26]
-        p4 = mu[48]
-        for n in range(5, 22):
-            mu[22 + n] = sb4 * mu[18 + n] + mu[40 + n] * d4
-            mu[44 + n] = mu[40 + n] * p4
+        d4 = mu[28]
+        p4 = mu[52]
+        for n in range(5, 24):
+            mu[24 + n] = sb4 * mu[20 + n] + mu[44 + n] * d4
+            mu[48 + n] = mu[44 + n] * p4
         kj = K[j]
-        for n in range(5, 22):
-            mu[n - 1] += kj * mu[22 + n] * _INV[n - 1]
+        for n in range(5, 24):
+            mu[n - 1] += kj * mu[24 + n] * _INV[n - 1]
         sa = sb
     cs = 1.0 if cos_term else 0.0
     il2 = cs / (l * l)
-    il4 = il2 * il2
-    # value forms of degrees 2, 4, 6, 8 at offsets 0, 3, 8, 15
-    for i in range(3):
-        tab[i] = 0.5 * _U2[i] * mu[4 + i] * l
-    for i in range(5):
-        tab[3 + i] = (0.5 * il2 * _UW2[i] * mu[6 + i] + 0.25 * _U4[i] * mu[8 + i]) * l
-    for i in range(7):
-        tab[8 + i] = 0.5 * il2 * _U2UW2[i] * mu[10 + i] * l
-    for i in range(9):
-        tab[15 + i] = 0.25 * il4 * _UW4[i] * mu[12 + i] * l
-    # Hessian forms: d2/da2 of a^(d-i) b^i is (d-i)(d-i-1) a^(d-2-i) b^i, and so on
+    # the forms' coefficients by power k of c: k = 0, the value forms (tab[0:24]); k = 1 and 2 at c = 0,
+    # mu[72:92] and mu[92:108] (only their derivatives are kept)
+    _value_forms(0, mu, l, il2, tab, 0)
+    _value_forms(1, mu, l, il2, mu, 72)
+    _value_forms(2, mu, l, il2, mu, 92)
+    # Hessian forms: d2/da2 of a^(d-i) b^i is (d-i)(d-i-1) a^(d-2-i) b^i, and so on; at c = 0 the
+    # c-derivatives of the a^(d-1-i) b^i c and a^(d-2-i) b^i c^2 terms
     kh = _NV
+    kc = _NV + _NH
     off = 0
+    o1 = 72
+    o2 = 92
     for d in range(2, 10, 2):
         for j in range(d - 1):
             tab[kh] = (d - j) * (d - j - 1) * tab[off + j]
             tab[kh + 1] = (d - j - 1) * (j + 1) * tab[off + j + 1]
             tab[kh + 2] = (j + 2) * (j + 1) * tab[off + j + 2]
             kh += 3
+        for j in range(d - 1):
+            tab[kc] = (d - 1 - j) * mu[o1 + j]
+            tab[kc + 1] = (j + 1) * mu[o1 + j + 1]
+            tab[kc + 2] = 2.0 * mu[o2 + j]
+            kc += 3
         off += d + 1
+        o1 += d
+        o2 += d - 1
     s3 = z3 / l
-    tab[_NTAB - 2] = 0.5 * s3 * s3
-    tab[_NTAB - 1] = _R3 * (s3 * s3 * s3 / 3.0 - 0.5 * s3 * s3)
+    tab[_PHI3] = 0.5 * s3 * s3
+    tab[_PHI3 + 1] = _R3 * (s3 * s3 * s3 / 3.0 - 0.5 * s3 * s3)
+    tab[_PHI3 + 2] = s3 * s3 * (_M4[2, 0] + s3 * (_M4[2, 1] + s3 * _M4[2, 2]))
     nq = 11 if cos_term else 7
     nl = T.shape[0]
     q = _NTAB
@@ -639,16 +686,9 @@ def cubic_table(l, T, K, z3, cos_term, tab, mu, GX, GW):
 @njit(cache=True)
 def _energy3c(c0, c1, tab, kb, F, grad, pw):
     """Order-3 energy from the table: (Pi, U_bend, U_spring, work, g0, g1, H00, H10, H11) in c."""
-    a = 0.5 * c0 - 0.5 * _R3 * c1
-    b = c1 * (1.0 / _R3)
-    # pw[k] = a^k, pw[9 + k] = b^k
-    pw[0] = 1.0
-    pw[9] = 1.0
-    for k in range(1, 9):
-        pw[k] = pw[k - 1] * a
-        pw[9 + k] = pw[8 + k] * b
+    a, b = _powers(c0, c1, pw)
     eb = 0.5 * kb * (c0 * c0 + c1 * c1)
-    wk = F * (c0 * tab[_NTAB - 2] + c1 * tab[_NTAB - 1])
+    wk = F * (c0 * tab[_PHI3] + c1 * tab[_PHI3 + 1])
     es = 0.0
     if not grad:
         # the value forms, one partial sum per degree (independent chains of additions)
@@ -660,37 +700,84 @@ def _energy3c(c0, c1, tab, kb, F, grad, pw):
             es += e
             off += d + 1
         return eb + es - wk, eb, es, wk, 0.0, 0.0, 0.0, 0.0, 0.0
-    # the Hessian forms of degree d - 2, then Euler: gradient (degree d - 1) and value (degree d)
-    ga = gb = haa = hab = hbb = 0.0
-    k = _NV
-    for m in range(0, 8, 2):
-        saa = 0.0
-        sab = 0.0
-        sbb = 0.0
-        for j in range(m + 1):
-            t = pw[m - j] * pw[9 + j]
-            saa += tab[k] * t
-            sab += tab[k + 1] * t
-            sbb += tab[k + 2] * t
-            k += 3
-        pa = (a * saa + b * sab) * _INV[m]  # 1 / (d - 1)
-        pb = (a * sab + b * sbb) * _INV[m]
-        es += (a * pa + b * pb) * _INV[m + 1]  # 1 / d
-        ga += pa
-        gb += pb
-        haa += saa
-        hab += sab
-        hbb += sbb
+    ga, gb, es, haa, hab, hbb = _forms(a, b, tab, pw, False)[:6]
     g0, g1, h00, h10, h11 = _to_c(kb, F, c0, c1, tab, ga, gb, haa, hab, hbb)
     return eb + es - wk, eb, es, wk, g0, g1, h00, h10, h11
+
+
+@njit(cache=True, inline="always")
+def _powers(c0, c1, pw):
+    """(a, b) of the order-3 coefficients c, and pw[k] = a^k, pw[9 + k] = b^k (k <= 8)."""
+    a = 0.5 * c0 - 0.5 * _R3 * c1
+    b = c1 * (1.0 / _R3)
+    pw[0] = 1.0
+    pw[9] = 1.0
+    for k in range(1, 9):
+        pw[k] = pw[k - 1] * a
+        pw[9 + k] = pw[8 + k] * b
+    return a, b
+
+
+@njit(cache=True, inline="always")
+def _forms(a, b, tab, pw, quartic):
+    """The Hessian forms (degrees 0, 2, 4, 6; triples aa, ab, bb from tab[_NV]) at (a, b), and by Euler
+    the gradient and the value of the spring energy: (P_a, P_b, U_spring, H_aa, H_ab, H_bb); with
+    quartic also the order-4 forms at c = 0 (triples ac, bc, cc from tab[_NV + _NH], same monomials):
+    P_c, H_ac, H_bc, H_cc (else zeros)."""
+    p1 = p2 = val = h11 = h12 = h22 = 0.0
+    pc = hac = hbc = hcc = 0.0
+    k = _NV
+    for m in range(0, 8, 2):
+        s11 = 0.0
+        s12 = 0.0
+        s22 = 0.0
+        sac = 0.0
+        sbc = 0.0
+        scc = 0.0
+        for j in range(m + 1):
+            t = pw[m - j] * pw[9 + j]
+            s11 += tab[k] * t
+            s12 += tab[k + 1] * t
+            s22 += tab[k + 2] * t
+            if quartic:
+                sac += tab[k + _NH] * t
+                sbc += tab[k + _NH + 1] * t
+                scc += tab[k + _NH + 2] * t
+            k += 3
+        q1 = (a * s11 + b * s12) * _INV[m]  # 1 / (d - 1)
+        q2 = (a * s12 + b * s22) * _INV[m]
+        val += (a * q1 + b * q2) * _INV[m + 1]  # 1 / d
+        p1 += q1
+        p2 += q2
+        h11 += s11
+        h12 += s12
+        h22 += s22
+        if quartic:
+            pc += (a * sac + b * sbc) * _INV[m]  # P_c has degree d - 1
+            hac += sac
+            hbc += sbc
+            hcc += scc
+    return p1, p2, val, h11, h12, h22, pc, hac, hbc, hcc
+
+
+@njit(cache=True)
+def _step4c(c0, c1, F, kb, tab, pw):
+    """The error estimate's order-4 step: one Newton step from the order-3 answer (c0, c1, 0), its
+    gradient and Hessian from the closed-form forms at c = 0 (exact like order 3's; no Gauss points).
+    (positive definite, d0, d1, d2) in the order-4 basis coefficients."""
+    a, b = _powers(c0, c1, pw)
+    ga, gb, es, haa, hab, hbb, gc, hac, hbc, hcc = _forms(a, b, tab, pw, True)
+    r = _to_x4(kb, F, c0, c1, 0.0, tab[_PHI3], tab[_PHI3 + 1], tab[_PHI3 + 2], ga, gb, gc,
+               haa, hab, hbb, hac, hbc, hcc)
+    return _chol3(r[3], r[4], r[5], r[6], r[7], r[8], r[0], r[1], r[2], 0.0)
 
 
 @njit(cache=True)
 def _to_c(kb, F, c0, c1, tab, ga, gb, haa, hab, hbb):
     """Gradient and Hessian in c from those of the spring energy in (a, b), with bending and load:
     da/dc = (1/2, -sqrt(3)/2), db/dc = (0, 1/sqrt(3))."""
-    g0 = kb * c0 - F * tab[_NTAB - 2] + 0.5 * ga
-    g1 = kb * c1 - F * tab[_NTAB - 1] - 0.5 * _R3 * ga + gb * (1.0 / _R3)
+    g0 = kb * c0 - F * tab[_PHI3] + 0.5 * ga
+    g1 = kb * c1 - F * tab[_PHI3 + 1] - 0.5 * _R3 * ga + gb * (1.0 / _R3)
     h00 = kb + 0.25 * haa
     h10 = 0.5 * (hab * (1.0 / _R3) - 0.5 * _R3 * haa)
     h11 = kb + 0.75 * haa - hab + hbb * (1.0 / 3.0)
@@ -794,7 +881,7 @@ def _post3c(c, l, nl, cos_term, tab, eb, es, wk, out, react, fq):
     c1 = c[1]
     a = 0.5 * c0 - 0.5 * _R3 * c1
     b = c1 * (1.0 / _R3)
-    out[LOAD] = c0 * tab[_NTAB - 2] + c1 * tab[_NTAB - 1]
+    out[LOAD] = c0 * tab[_PHI3] + c1 * tab[_PHI3 + 1]
     out[U_BEND] = eb
     out[U_SPRING] = es
     out[WORK] = wk
@@ -943,10 +1030,19 @@ def _energy4g(x0, x1, x2, tab, n, il, cos_term, kb, F, grad):
             hac += r[7]
             hbc += r[8]
             hcc += r[9]
-    # chain rule to the basis coefficients: g_x = M g_(a,b,c), H_x = M H M^T, plus bending and load
-    g0 = kb * x0 - F * tab[0] + _M4[0, 0] * ga
-    g1 = kb * x1 - F * tab[1] + _M4[1, 0] * ga + _M4[1, 1] * gb
-    g2 = kb * x2 - F * tab[2] + _M4[2, 0] * ga + _M4[2, 1] * gb + _M4[2, 2] * gc
+    g0, g1, g2, h00, h10, h11, h20, h21, h22 = _to_x4(kb, F, x0, x1, x2, tab[0], tab[1], tab[2], ga, gb,
+                                                      gc, haa, hab, hbb, hac, hbc, hcc)
+    return eb + es - wk, eb, es, wk, g0, g1, g2, h00, h10, h11, h20, h21, h22
+
+
+@njit(cache=True, fastmath=_FM)
+def _to_x4(kb, F, x0, x1, x2, p0, p1, p2, ga, gb, gc, haa, hab, hbb, hac, hbc, hcc):
+    """Order-4 gradient and Hessian in the basis coefficients x from those of the spring energy in
+    (a, b, c) = x _M4 (g_x = M g, H_x = M H M^T), with bending and the load at phi(s3) = (p0, p1, p2):
+    (g0, g1, g2, h00, h10, h11, h20, h21, h22)."""
+    g0 = kb * x0 - F * p0 + _M4[0, 0] * ga
+    g1 = kb * x1 - F * p1 + _M4[1, 0] * ga + _M4[1, 1] * gb
+    g2 = kb * x2 - F * p2 + _M4[2, 0] * ga + _M4[2, 1] * gb + _M4[2, 2] * gc
     u00 = _M4[0, 0] * haa
     u10 = _M4[1, 0] * haa + _M4[1, 1] * hab
     u11 = _M4[1, 0] * hab + _M4[1, 1] * hbb
@@ -959,7 +1055,7 @@ def _energy4g(x0, x1, x2, tab, n, il, cos_term, kb, F, grad):
     h20 = u20 * _M4[0, 0]
     h21 = u20 * _M4[1, 0] + u21 * _M4[1, 1]
     h22 = kb + u20 * _M4[2, 0] + u21 * _M4[2, 1] + u22 * _M4[2, 2]
-    return eb + es - wk, eb, es, wk, g0, g1, g2, h00, h10, h11, h20, h21, h22
+    return g0, g1, g2, h00, h10, h11, h20, h21, h22
 
 
 @njit(cache=True)
@@ -1071,29 +1167,48 @@ def _newton4(c, F, kb, tab, n, il, cos_term):
 
 @njit(cache=True)
 def _sup4(x0, x1, x2, grid):
-    """max over the grid of |v| for order-4 basis coefficients x, in monomial form (vectorised)."""
+    """max over the grid s = k/64 of |v| for order-4 basis coefficients x, in monomial form. Between the
+    critical points of v = s^2 (a + b s + c s^2) (s = 0 and the roots of 2a + 3b s + 4c s^2) |v| is
+    monotone, or falls to zero and rises: the grid maximum is at s = 1 or next to an interior critical
+    point, so only those points are evaluated (the 65-point scan cost ~100 ns)."""
     a = x0 * _M4[0, 0] + x1 * _M4[1, 0] + x2 * _M4[2, 0]
     b = x1 * _M4[1, 1] + x2 * _M4[2, 1]
     c = x2 * _M4[2, 2]
-    e = 0.0
-    for k in range(grid.shape[0]):
-        s = grid[k]
-        e = max(e, abs(s * s * (a + s * (b + s * c))))
+    n = grid.shape[0] - 1
+    s = grid[n]  # 1, evaluated as at the other points (the same round-off as a scan)
+    e = abs(s * s * (a + s * (b + s * c)))
+    r1 = r2 = -1.0
+    if c != 0.0:
+        disc = 9.0 * b * b - 32.0 * a * c
+        if disc >= 0.0:
+            q = -0.5 * (3.0 * b + np.copysign(np.sqrt(disc), b))
+            r1 = q / (4.0 * c)
+            if q != 0.0:
+                r2 = 2.0 * a / q
+    elif b != 0.0:
+        r1 = -2.0 * a / (3.0 * b)
+    for r in (r1, r2):
+        if 0.0 < r < 1.0:
+            k = int(r * n)
+            for i in range(k, min(k + 2, n + 1)):
+                s = grid[i]
+                e = max(e, abs(s * s * (a + s * (b + s * c))))
     return e
 
 
 def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
-                 A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate, mono4):
+                 A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate, mono4, step):
     """Samples start..stop-1. The model arrays KB, L, Z3, T, K have one row per sample, or a single
     row that every sample shares (a batch that varies the force only). closed: order 3 through the
     closed-form energy (cubic_table); estimate: also solve order p + 1 for error_estimate (else NaN);
-    mono4: with closed, the order-4 solve of the order-3 estimate through _newton4 (else Gauss path)."""
+    mono4: with closed, the order-4 solve of the order-3 estimate through _newton4 (else Gauss path);
+    step: with mono4 and not auto, that solve replaced by one Newton step (_step4c)."""
     nl = T.shape[1]
     wk = _workspace(pmax + 1, nl)
     c = np.zeros(pmax)
     c2 = np.zeros(pmax)
     tab = np.empty(table_size(nl, cos_term))
-    mu = np.empty(66)
+    mu = np.empty(_NMU)
     pw = np.empty(18)
     fq = np.empty(11)
     out = np.full(NCOLS, np.nan)  # one sample's scalars (NaN where a failed sample has none)
@@ -1101,10 +1216,11 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
     cubic = closed and order == 3
     tab4 = np.empty(3 + 2 * max(nl, 1) * 15)
     n4 = 0
+    # one closed-form order-4 Newton step for the order-3 estimate (not in auto: order 5 starts from
+    # the converged order 4); where its Hessian is not positive definite, the full order-4 solve
+    step4 = cubic and mono4 and step and not auto
     if cubic and shared:
         cubic_table(L[0], T[0], K[0], Z3[0], cos_term, tab, mu, GX, GW)
-        if estimate and mono4:
-            n4 = quartic_points(L[0], T[0], K[0], Z3[0], cos_term, tab4, GX, GW)
     for m in range(start, stop):
         g = 0 if shared else m
         for i in range(pmax):
@@ -1129,9 +1245,14 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
             for i in range(pmax):
                 c2[i] = c[i]
             c2[p - 1] = 0.0
+            if step4 and not gauss and p == 3:  # one order-4 Newton step in closed form
+                pd, d0, d1, d2 = _step4c(c[0], c[1], F[m], KB[g], tab, pw)
+                est = _sup4(d0, d1, d2, grid)
+                if pd and np.isfinite(est):
+                    break
             st2 = FALLBACK
             if cubic and mono4 and p == 3:  # order 4 in monomial form, scalar state
-                if not shared:
+                if not shared or n4 == 0:
                     n4 = quartic_points(L[g], T[g], K[g], Z3[g], cos_term, tab4, GX, GW)
                 it2, st2 = _newton4(c2, F[m], KB[g], tab4, n4, 1.0 / L[g], cos_term)
             if st2 == FALLBACK:
@@ -1183,7 +1304,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
 
 
 def _solve_all(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, A, Ad, GX, GW, grid, gphi,
-               C, S, R, chunks, fast, closed, estimate, mono4):
+               C, S, R, chunks, fast, closed, estimate, mono4, step):
     N = F.shape[0]
     size = (N + chunks - 1) // chunks
     for b in prange(chunks):
@@ -1191,7 +1312,7 @@ def _solve_all(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, A, Ad, GX, 
         stop = min(N, start + size)
         if start < stop:
             _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol,
-                         A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate, mono4)
+                         A, Ad, GX, GW, grid, gphi, C, S, R, fast, closed, estimate, mono4, step)
 
 
 _solve_range = njit(cache=True)(_solve_range)

@@ -31,6 +31,9 @@ _CLOSED = True
 # With _CLOSED, the order-4 solve behind the order-3 error estimate with the basis in monomial form
 # (kernel._newton4). False: that solve on the unrolled Gauss path (the previous version).
 _MONOMIAL4 = True
+# With _MONOMIAL4, that solve replaced by one order-4 Newton step from the order-3 answer, in closed
+# form (kernel._step4c; not with order='auto'). False: the full order-4 Newton (the previous version).
+_STEP4 = True
 
 
 @dataclass(frozen=True)
@@ -232,7 +235,7 @@ def _run(F, KB, L, Z3, T, K, cos_term, order, auto, max_order, tol, parallel, es
     else:
         fn, chunks = kernel.solve_serial, 1
     fn(F, KB, L, Z3, T, K, cos_term, order, auto, pmax, tol, *_TABLES, C, S, R, chunks, _FAST,
-       _FAST and _CLOSED, estimate, _MONOMIAL4)
+       _FAST and _CLOSED, estimate, _MONOMIAL4, _STEP4)
     status = S[kernel.STATUS]
     if status.any():
         bad = np.flatnonzero(status != kernel.OK)
