@@ -127,3 +127,17 @@ def test_bad_input():
         frame.solve_batch([[0, 300.0, 0]], [[0, np.inf, 0]], model=m)
     with pytest.raises(InputError, match="force_N.*validity"):  # beyond the model's range in one row of many
         frame.solve_batch([[0, 300.0, 0]] * 300 + [[0, 1e5, 0]], model=m)
+
+
+def test_small_wrenches_converge_and_are_linear():
+    """A wrench far below a newton (a control loop at rest reads sensor noise) converges and follows the linear
+    response: the residual's rounding floor once made every wrench under ~0.5 N raise ConvergenceError."""
+    per_newton = np.asarray(frame.solve((1e-2, 0.0, 0.0)).clamp_displacement_mm) / 1e-2
+    for f in (1e-3, 1e-6):
+        u = np.asarray(frame.pose((f, 0.0, 0.0))[0]) / f
+        assert u[0] == pytest.approx(per_newton[0], rel=1e-4)
+    F = np.random.default_rng(3).uniform(-1e-3, 1e-3, (400, 3))
+    rows = frame.solve_batch(F)
+    cold = np.asarray(frame.pose(F[0])[0])
+    assert np.abs(rows.clamp_displacement_mm[0] - cold).max() < 1e-9
+    assert np.all(np.isfinite(rows.clamp_displacement_mm))

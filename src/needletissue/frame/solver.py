@@ -18,7 +18,10 @@ from needletissue.frame.model import (
     CANCELLOUS_STRENGTH_MPA, CORTICAL_STRENGTH_MPA, FrameModel, clamp_compliance, shear_factor,
 )
 
-TOL = 1e-9        # Newton: scaled residual, relative to the scaled load (absolute floor 1e-14)
+TOL = 1e-9        # Newton: scaled residual, relative to the scaled load
+# absolute floor: the residual's rounding floor is ~2e-12 scaled (measured), so a tolerance below it made a
+# wrench under ~0.5 N fail to converge (pose at 1e-3 N raised); 1e-11 scaled is ~1e-9 mm of clamp motion
+TOL_FLOOR = 1e-11
 MAX_CUTS = 12
 BROYDEN_MAXIT = 40  # then full Newton with load stepping
 WARM_REFRESH = 4    # warm starts: refresh the stored tangent when a solve needs more passes
@@ -282,7 +285,7 @@ def _tol(disc, W):
     P = disc.P
     w = [abs(x) for x in W.tolist()]
     scale = max(max(w[:3]) / float(P[k.FS]), max(w[3:]) / float(P[k.MS]))
-    return max(TOL * scale, 1e-14)
+    return max(TOL * scale, TOL_FLOOR)
 
 
 def _inverse_tangent(disc: Discretisation) -> np.ndarray:
@@ -579,7 +582,6 @@ class BatchResult:
 LANES = 32          # batch: solves integrated in lock-step (one vectorised integration per pin and pass)
 CELL_MIN = 200      # batch: fewest wrenches that get their own anchor (answer, tangent and its derivatives)
 CELL_SPREAD = 0.1   # batch: a cell wider than this (scaled wrench, relative to its centre) is split
-ANCHOR_FLOOR = 1e-11  # batch: the anchor's polish tolerance never below this (scaled residual)
 
 
 def _anchor(disc: Discretisation, Wa: np.ndarray, vary=np.ones(6, bool), near=None):
@@ -602,9 +604,9 @@ def _anchor(disc: Discretisation, Wa: np.ndarray, vary=np.ones(6, bool), near=No
     if not np.any(Wa):
         return rest
     # polished far below the batch's tolerance (the predictors start from it), but not below the residual's
-    # rounding floor (~2e-12 scaled, measured): a tighter polish failed for 10-17 of the 256 anchors of 100,000
-    # random wrenches below ~130 N, and those cells started from rest
-    tol = max(1e-3 * _tol(disc, Wa), ANCHOR_FLOOR)
+    # rounding floor: a tighter polish failed for 10-17 of the 256 anchors of 100,000 random wrenches below
+    # ~130 N, and those cells started from rest
+    tol = max(1e-3 * _tol(disc, Wa), TOL_FLOOR)
     st = k.MAX_ITER
     if near is not None and near[0].any():  # the wrench enters the residual additively: near's end states serve
         ya, Ea = near[1].copy(), near[2].copy()
@@ -686,7 +688,7 @@ def solve_batch(forces, moments=None, model: FrameModel | None = None, *, method
     P = disc.P
     F = np.ascontiguousarray(F)
     M = np.ascontiguousarray(M)
-    tol = np.maximum(TOL * np.maximum(np.abs(F).max(1) / P[k.FS], np.abs(M).max(1) / P[k.MS]), 1e-14)
+    tol = np.maximum(TOL * np.maximum(np.abs(F).max(1) / P[k.FS], np.abs(M).max(1) / P[k.MS]), TOL_FLOOR)
     N = 6 * disc.NX.shape[0] + 6
     n = F.shape[0]
     out = np.empty((n, 7))
