@@ -211,6 +211,20 @@ def test_relocation_slides_a_boundary_node_back_in_its_plane():
     assert np.array_equal(z[fixed & np.isnan(slide[:, 0])], y[fixed & np.isnan(slide[:, 0])])
 
 
+def test_relocation_at_20_deg_raises_the_tail_and_never_the_worst_or_a_fixed_node():
+    x, c, tag = _slivered_two_tissue_box(n_slivers=12)
+    inter, free, faces = face_pairs(c, tag)
+    fixed = np.zeros(len(x), bool)
+    fixed[np.unique(faces[np.concatenate([inter, free])])] = True
+    md0 = vol_min_dihedral(x[c])[1]
+    y, moved = relocate_nodes(x, c, fixed, target_deg=20.0)
+    vol, md = vol_min_dihedral(y[c])
+    assert moved > 0 and (vol > 0).all() and md.min() > md0.min()
+    assert (md < 20).sum() < 0.5 * (md0 < 20).sum() and (md < 3).sum() == 0
+    assert np.array_equal(y[fixed], x[fixed])
+    assert np.array_equal(relocate_nodes(x, c, fixed, target_deg=20.0)[0], y)     # deterministic
+
+
 def test_ring_triangulations_are_the_catalan_numbers_of_distinct_diagonals():
     for n, tris in RING_TRIANGULATIONS.items():
         assert len(tris) == [1, 2, 5, 14, 42][n - 3]
