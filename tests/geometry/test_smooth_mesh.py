@@ -128,11 +128,13 @@ def test_mesh_command_smooth_method(tmp_path, run_cli):
     arr, tissues = nested_boxes()
     seg = make_seg(arr, tissues, spacing=H)
     seg.save(tmp_path / "seg")
-    code, out, err = run_cli("mesh", tmp_path / "seg", "--out", tmp_path / "m",
-                          "--method", "smooth", "--fidelity", "--no-surfaces")
+    code, out, err = run_cli("mesh", tmp_path / "seg", "--out", tmp_path / "m", "--crop", "none",
+                          "--fidelity", "--no-surfaces")
     assert code == 0, err
     res = json.loads((tmp_path / "m" / "results.json").read_text(encoding="utf-8"))
-    assert res["mesh_info"]["method"] == "smooth"
+    assert res["mesh_info"]["method"] == "smooth"                      # the default
+    side = 12 * H                                                       # the whole image: the 12-voxel box
+    assert sum(res["quality"]["volume_mm3_by_region"].values()) == pytest.approx(side ** 3, rel=0.03)
     assert res["fidelity"]["n_inverted"] == 0 and res["fidelity"]["min_dihedral_deg"] > 0
     code, _, err = run_cli("mesh", tmp_path / "seg", "--out", tmp_path / "m2",
                         "--method", "marching")
