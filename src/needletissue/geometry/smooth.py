@@ -16,7 +16,7 @@ Route (one path from the label map to the mesh, `tet_mesh(..., method="smooth")`
    tissue is the volume-weighted majority label of its tetrahedra's centroids, so every tetrahedron of a
    subdomain has the same tissue and tissue boundaries are the smooth interfaces (no centroid staircase);
 6. element optimisation with the interfaces fixed: gmsh's optimiser (gmsh_optimize), then a local
-   relocation of the nodes of elements below 12 deg (relocate_nodes); interior nodes move freely, nodes
+   relocation of the nodes of elements below 20 deg (relocate_nodes); interior nodes move freely, nodes
    on a smooth patch of one interface slide in its tangent plane (sliding_normals), because the worst
    elements have all four nodes on interfaces (measured on the CT);
 7. sliver removal (remove_slivers): what step 6 leaves below the goal are flat elements capping an
