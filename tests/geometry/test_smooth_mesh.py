@@ -128,11 +128,13 @@ def test_mesh_command_smooth_method(tmp_path, run_cli):
     arr, tissues = nested_boxes()
     seg = make_seg(arr, tissues, spacing=H)
     seg.save(tmp_path / "seg")
-    code, out, err = run_cli("mesh", tmp_path / "seg", "--out", tmp_path / "m",
-                          "--method", "smooth", "--fidelity", "--no-surfaces")
+    code, out, err = run_cli("mesh", tmp_path / "seg", "--out", tmp_path / "m", "--crop", "none",
+                          "--fidelity", "--no-surfaces")
     assert code == 0, err
     res = json.loads((tmp_path / "m" / "results.json").read_text(encoding="utf-8"))
-    assert res["mesh_info"]["method"] == "smooth"
+    assert res["mesh_info"]["method"] == "smooth"                      # the default
+    side = 12 * H                                                       # the whole image: the 12-voxel box
+    assert sum(res["quality"]["volume_mm3_by_region"].values()) == pytest.approx(side ** 3, rel=0.03)
     assert res["fidelity"]["n_inverted"] == 0 and res["fidelity"]["min_dihedral_deg"] > 0
     code, _, err = run_cli("mesh", tmp_path / "seg", "--out", tmp_path / "m2",
                         "--method", "marching")
@@ -209,6 +211,20 @@ def test_relocation_slides_a_boundary_node_back_in_its_plane():
     assert moved >= 1 and (vol > 0).all() and md.min() > 2 * best[1]
     assert z[v, 2] == pytest.approx(0.0, abs=1e-12)                # it stayed on the face z = 0
     assert np.array_equal(z[fixed & np.isnan(slide[:, 0])], y[fixed & np.isnan(slide[:, 0])])
+
+
+def test_relocation_at_20_deg_raises_the_tail_and_never_the_worst_or_a_fixed_node():
+    x, c, tag = _slivered_two_tissue_box(n_slivers=12)
+    inter, free, faces = face_pairs(c, tag)
+    fixed = np.zeros(len(x), bool)
+    fixed[np.unique(faces[np.concatenate([inter, free])])] = True
+    md0 = vol_min_dihedral(x[c])[1]
+    y, moved = relocate_nodes(x, c, fixed, target_deg=20.0)
+    vol, md = vol_min_dihedral(y[c])
+    assert moved > 0 and (vol > 0).all() and md.min() > md0.min()
+    assert (md < 20).sum() < 0.5 * (md0 < 20).sum() and (md < 3).sum() == 0
+    assert np.array_equal(y[fixed], x[fixed])
+    assert np.array_equal(relocate_nodes(x, c, fixed, target_deg=20.0)[0], y)     # deterministic
 
 
 def test_ring_triangulations_are_the_catalan_numbers_of_distinct_diagonals():

@@ -23,6 +23,7 @@ def test_segment_mesh_thickness(phantom_ct, tmp_path, run_cli):
     assert (mesh_dir / "surfaces" / "adipose.stl").is_file() and (mesh_dir / "mesh.vtu").is_file()
     res = json.loads((mesh_dir / "results.json").read_text(encoding="utf-8"))
     assert res["quality"]["min_dihedral_deg"] > 0
+    assert res["mesh_info"]["method"] == "smooth" and res["wall_time_s"]["surfaces"] > 0   # the defaults
     assert all(r["watertight"] and r["manifold"] for r in res["surfaces"].values())
     # phantom centre in LPS: origin (100, 50, -20), direction diag(-1, -1, 1), 64 x 64 voxels of 2 mm
     cx, cy = 100 - 63.0, 50 - 63.0

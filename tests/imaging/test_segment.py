@@ -7,7 +7,7 @@ import SimpleITK as sitk
 from phantom import R_BODY, R_BONE, R_MUSCLE, SPACING, phantom_arrays, to_image
 from needletissue.errors import InputError
 from needletissue.imaging.segment import (
-    TISSUE_IDS, Segmentation, SegmentationConfig, segment, split_bone)
+    TISSUE_IDS, Segmentation, SegmentationConfig, near_background, refine_linear, segment, split_bone)
 
 
 def _annulus(r0, r1, height):
@@ -80,6 +80,25 @@ def test_cortical_split_matches_the_shell_volume(spacing, tol):
     expected = 1 - (1 - t / R) ** 3
     assert info["fine_cortical_fraction"] == pytest.approx(expected, rel=tol)
     assert not np.any(cort & canc) and np.array_equal(cort | canc, ball)
+
+
+@pytest.mark.parametrize("sampling", [(0.75, 0.75, 0.75), (1.0, 0.5, 0.7), (3.0, 3.0, 3.0)])
+def test_near_background_is_the_edt_threshold(sampling):
+    from scipy import ndimage as ndi
+
+    m = ndi.gaussian_filter(np.random.default_rng(1).random((24, 30, 28)), 2) > 0.5
+    for r in (0.6, 1.875, 2.2, 4.0, 7.0):
+        ref = m & (ndi.distance_transform_edt(m, sampling=sampling) <= r)
+        assert np.array_equal(near_background(m, sampling, r), ref), r
+
+
+@pytest.mark.parametrize("k", [(4, 4, 4), (2, 3, 1)])
+def test_refine_linear_is_scipy_zoom(k):
+    from scipy import ndimage as ndi
+
+    a = np.random.default_rng(2).random((9, 7, 8)).astype(np.float32)
+    ref = ndi.zoom(a, k, order=1, grid_mode=True, mode="grid-constant")
+    assert np.allclose(refine_linear(a, k), ref, atol=1e-6)
 
 
 def test_bad_config():

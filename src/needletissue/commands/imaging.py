@@ -57,13 +57,14 @@ def register(app: typer.Typer, groups) -> None:
                                    "that of a regular tetrahedron of this edge (paper: 3 mm)."),
         regions: Optional[str] = typer.Option(None, help="Comma-separated tissues to mesh (default all "
                                               "but other_body)."),
-        crop: Optional[str] = typer.Option(None, help="Box xmin,xmax,ymin,ymax,zmin,zmax in LPS mm, or "
-                                           "'pelvis' (sacrum and hip bones + 30 mm)."),
+        crop: str = typer.Option("pelvis", help="'pelvis' (sacrum and hip bones + 30 mm: the region "
+                                 "the models need), 'none' (the whole image) or a box "
+                                 "xmin,xmax,ymin,ymax,zmin,zmax in LPS mm."),
         surfaces_out: bool = typer.Option(True, "--surfaces/--no-surfaces",
                                           help="Also write smoothed per-tissue surfaces (STL + VTP)."),
-        method: str = typer.Option("voxel", "--method", help="Tissue interfaces: 'voxel' (exact voxel "
-                                   "faces, staircases) or 'smooth' (smoothed shared interfaces, volumes kept, "
-                                   "optimised elements; docs/imaging.md)."),
+        method: str = typer.Option("smooth", "--method", help="Tissue interfaces: 'smooth' (smoothed "
+                                   "shared interfaces, volumes kept, optimised elements; docs/imaging.md) or "
+                                   "'voxel' (exact voxel faces, staircases)."),
         fidelity: bool = typer.Option(False, "--fidelity/--no-fidelity", help="Also measure volumes, Dice "
                                       "and Hausdorff 95 % (mm) of the mesh against the label map."),
     ):
@@ -71,7 +72,6 @@ def register(app: typer.Typer, groups) -> None:
         volumes per tissue, physical surfaces `boundary` and `bone_surface`) + quality report."""
         from dataclasses import asdict
 
-        from needletissue.geometry.surfaces import surfaces
         from needletissue.geometry.tetmesh import MeshConfig, tet_mesh
         from needletissue.imaging.segment import Segmentation
         from needletissue.runinfo import make_dir, write_json, write_run_files
@@ -80,26 +80,32 @@ def register(app: typer.Typer, groups) -> None:
         box = None
         if crop == "pelvis":
             box = seg.bone_box(30.0)
-        elif crop:
+        elif crop != "none":
             box = tuple(_floats("crop", crop, 6))
         cfg = MeshConfig(size=size, regions=regions.split(",") if regions else None, crop=box,
                          method=method).validate()
         make_dir(out)  # fail before minutes of meshing, not after
         t0 = time.perf_counter()
-        results = {}
-        if surfaces_out:
-            ts = surfaces(seg, cfg.regions)
-            ts.write(Path(out) / "surfaces")
-            results["surfaces"] = {n: {**asdict(r), "volume_change": r.volume_change}
-                                   for n, r in ts.reports.items()}
-            bad = [n for n, r in ts.reports.items() if not (r.watertight and r.manifold)]
-            if bad:
-                typer.echo(f"warning: surfaces not watertight/manifold: {', '.join(bad)}", err=True)
+        results, view = {}, None
+        if surfaces_out:   # independent of the tetrahedral mesh: a child process makes them meanwhile
+            from needletissue.geometry.child import start_in_child
+
+            view = start_in_child("needletissue.geometry.surfaces:write_surfaces",
+                                  {"directory": str(directory), "regions": cfg.regions,
+                                   "out": str(Path(out) / "surfaces")}, what="the tissue surfaces")
         t1 = time.perf_counter()
         mesh = tet_mesh(seg, config=cfg)
         t2 = time.perf_counter()
         mesh.write_msh(Path(out) / "mesh.msh")
         mesh.write_vtu(Path(out) / "mesh.vtu")
+        t3 = time.perf_counter()
+        if surfaces_out:
+            view = view()
+            results["surfaces"] = view["reports"]
+            bad = [n for n, r in results["surfaces"].items() if not (r["watertight"] and r["manifold"])]
+            if bad:
+                typer.echo(f"warning: surfaces not watertight/manifold: {', '.join(bad)}", err=True)
+        t4 = time.perf_counter()
         q = mesh.quality()
         if fidelity:
             from needletissue.geometry.fidelity import mesh_fidelity
@@ -107,7 +113,8 @@ def register(app: typer.Typer, groups) -> None:
             results["fidelity"] = asdict(mesh_fidelity(seg, mesh, cfg))
         results.update({"quality": asdict(q), "materials": mesh.materials, "mesh_info": mesh.info,
                         "surfaces_in_msh": {k: int(len(v)) for k, v in mesh.surfaces.items()},
-                        "wall_time_s": {"surfaces": t1 - t0, "tet_mesh": t2 - t1,
+                        "wall_time_s": {"surfaces": view["wall_time_s"] if view else 0.0,
+                                        "tet_mesh": t2 - t1, "write": t3 - t2, "surfaces_wait": t4 - t3,
                                         "total": time.perf_counter() - t0}})
         write_json(Path(out) / "mesh.json", {"regions": mesh.materials, "quality": asdict(q)})
         write_run_files(out, {"dir": str(directory), "mesh": asdict(cfg)}, results)

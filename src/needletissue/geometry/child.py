@@ -57,6 +57,30 @@ def call_in_child(target: str, kwargs: dict, *, what: str) -> dict:
         raise ChildCrash(f"{what} failed in its child process (exit {proc.returncode}): {last[0]}")
 
 
+def start_in_child(target: str, kwargs: dict, *, what: str):
+    """call_in_child from a background thread, so the caller computes meanwhile; returns a function that
+    waits for the child and returns its value (or raises its error)."""
+    import threading
+
+    box = {}
+
+    def run():
+        try:
+            box["value"] = call_in_child(target, kwargs, what=what)
+        except BaseException as exc:   # re-raised in the caller's thread by result()
+            box["error"] = exc
+
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+
+    def result():
+        th.join()
+        if "error" in box:
+            raise box["error"]
+        return box["value"]
+    return result
+
+
 class _UnwindOnSigterm:
     """While the child runs, SIGTERM to a process that would die of it at once (the default action: a
     `reproduce` stage worker, stopped with SIGTERM) raises SystemExit(143) instead, so that the child is

@@ -16,7 +16,7 @@ Route (one path from the label map to the mesh, `tet_mesh(..., method="smooth")`
    tissue is the volume-weighted majority label of its tetrahedra's centroids, so every tetrahedron of a
    subdomain has the same tissue and tissue boundaries are the smooth interfaces (no centroid staircase);
 6. element optimisation with the interfaces fixed: gmsh's optimiser (gmsh_optimize), then a local
-   relocation of the nodes of elements below 12 deg (relocate_nodes); interior nodes move freely, nodes
+   relocation of the nodes of elements below 20 deg (relocate_nodes); interior nodes move freely, nodes
    on a smooth patch of one interface slide in its tangent plane (sliding_normals), because the worst
    elements have all four nodes on interfaces (measured on the CT);
 7. sliver removal (remove_slivers): what step 6 leaves below the goal are flat elements capping an
@@ -312,30 +312,18 @@ def gmsh_optimize(points: np.ndarray, cells: np.ndarray, tag: np.ndarray, thresh
         parts = [_gmsh_optimize_group(X, cells, tag, groups[0], threshold)]
     else:
         import tempfile
-        import threading
         from pathlib import Path
 
-        from needletissue.geometry.child import call_in_child
+        from needletissue.geometry.child import start_in_child
 
         with tempfile.TemporaryDirectory(prefix="needletissue-gmsh-") as tmp:
             inp, out = str(Path(tmp) / "in.npz"), str(Path(tmp) / "out.npz")
             sel = np.isin(tag, groups[1])
             np.savez(inp, points=X, cells=cells[sel], tag=tag[sel], threshold=threshold)
-            err = []
-
-            def child():
-                try:
-                    call_in_child("needletissue.geometry.smooth:_gmsh_optimize_file",
-                                  {"inp": inp, "out": out}, what="gmsh's optimiser")
-                except BaseException as exc:   # re-raised in this thread below
-                    err.append(exc)
-
-            th = threading.Thread(target=child, daemon=True)
-            th.start()
+            other = start_in_child("needletissue.geometry.smooth:_gmsh_optimize_file", {"inp": inp, "out": out},
+                                   what="gmsh's optimiser")
             first = _gmsh_optimize_group(X, cells[~sel], tag[~sel], groups[0], threshold)
-            th.join()
-            if err:
-                raise err[0]
+            other()
             with np.load(out) as z:
                 second = (z["nodes"], z["xyz"], z["cells"], z["tag"])
         parts = [first, second]
@@ -484,52 +472,22 @@ def relocate_nodes(points, cells, fixed, target_deg: float = 12.0, rounds: int =
     few candidate positions (the mean of their neighbours, random points around the current one),
     keeping a move only if it raises the smallest dihedral angle of the node's star and no element
     inverts. Nodes in `fixed` never move, except those with a finite normal in `slide` (n, 3): they move
-    in their tangent plane only (sliding_normals). Deterministic (seeded).
+    in their tangent plane only (sliding_normals). Deterministic (seeded; compiled loop in relocate_kernel).
     Returns (points, number of node moves)."""
+    from needletissue.geometry.relocate_kernel import relocate
+
     x = np.array(points, float, copy=True)
-    rng = np.random.default_rng(seed)
+    cells = np.ascontiguousarray(cells, np.int64)
     flat = cells.ravel()
     order = np.argsort(flat, kind="stable")
     start = np.searchsorted(flat[order], np.arange(len(x) + 1))
-    star_of = lambda v: order[start[v]:start[v + 1]] // 4  # noqa: E731
-    can_slide = np.zeros(len(x), bool) if slide is None else np.isfinite(slide[:, 0])
-    movable = ~fixed | can_slide
+    sliding = np.zeros(len(x), bool) if slide is None else np.asarray(fixed, bool) & np.isfinite(slide[:, 0])
+    normal = np.zeros((len(x), 3)) if slide is None else np.where(sliding[:, None], slide, 0.0)
+    movable = ~np.asarray(fixed, bool) | sliding
     md = vol_min_dihedral(x[cells])[1]             # kept up to date star by star
-    moved = 0
-    for _ in range(rounds):
-        bad = np.flatnonzero(md < target_deg)
-        nodes = np.unique(cells[bad])
-        nodes = nodes[movable[nodes]]
-        if len(nodes) == 0:
-            break
-        n_round = 0
-        for v in nodes:
-            st = star_of(v)
-            c = cells[st]
-            q0 = md[st].min()
-            if q0 >= target_deg:
-                continue
-            nb = np.unique(c)
-            nb = nb[nb != v]
-            h = np.linalg.norm(x[nb] - x[v], axis=1).mean()
-            d = np.vstack([x[nb].mean(0) - x[v], rng.normal(scale=0.25 * h, size=(samples, 3))])
-            if fixed[v]:                                   # sliding node: tangential moves only
-                nrm = slide[v]
-                d -= np.outer(d @ nrm, nrm)
-            cand = x[v] + d
-            P = np.broadcast_to(x[c], (len(cand),) + c.shape + (3,)).copy()   # (m, k, 4, 3)
-            P[:, c == v] = cand[:, None, :]
-            vol, mdc = vol_min_dihedral(P)
-            score = np.where((vol > 0).all(1), mdc.min(1), -1.0)
-            k = int(np.argmax(score))
-            if score[k] > q0:          # positive cells stay positive; the star's worst angle improves
-                x[v] = cand[k]
-                md[st] = mdc[k]
-                n_round += 1
-        moved += n_round
-        if n_round == 0:
-            break
-    return x, moved
+    moved = relocate(x, cells, start, order // 4, movable, sliding, np.ascontiguousarray(normal), md,
+                     float(target_deg), int(rounds), int(samples), int(seed))
+    return x, int(moved)
 
 
 def _faces_with(cell, w):
@@ -807,6 +765,7 @@ OPTIMIZE_PASSES = 1         # a 2nd pass on the CT: 204 instead of 233 elements 
 OPTIMIZE_METHODS = ("",)    # gmsh optimisers per pass ("": gmsh's own tetrahedron optimiser)
 SLIDE = True               # interface nodes may slide in their tangent plane during relocation
 SLIDE_MAX_DEVIATION = 35.0  # degrees; surface nodes whose faces deviate more from their mean normal stay put
+RELOCATE_TARGET = 20.0      # degrees; relocation works on elements below this (goal: 1st percentile >= 20)
 SLIVER_TARGET = 12.0        # degrees; remove_slivers works on elements below this (goal: 10)
 SLIVER_SHIFT = 1 / 3        # x voxel: a flat element this thin may change tissue (its interface moves that much)
 
@@ -876,7 +835,7 @@ def smooth_tet_mesh(seg, cfg):
     tb = np.where(partner[bnd] >= 0, tag[partner[bnd] % n_c], -1)     # -1: free boundary
     group = np.minimum(ta, tb) * 1000 + np.maximum(ta, tb)             # one id per interface / boundary
     slide = sliding_normals(nodes, faces[bnd], group, SLIDE_MAX_DEVIATION) if SLIDE else None
-    nodes, n_moved = relocate_nodes(nodes, cells, fixed, slide=slide)
+    nodes, n_moved = relocate_nodes(nodes, cells, fixed, target_deg=RELOCATE_TARGET, slide=slide)
     t5 = time.perf_counter()
     cpu.append(time.process_time())
     # what relocation leaves below the goal sits on interfaces (caps at an interface edge): flips, splits

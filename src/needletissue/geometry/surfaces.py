@@ -149,6 +149,22 @@ def surfaces(seg, tissues: list[str] | None = None, *, smoothing_iterations: int
     return out
 
 
+def write_surfaces(directory: str, regions: list[str] | None, out: str) -> dict:
+    """`needletissue mesh`'s viewing surfaces of the segmentation in `directory`, written to `out`; returns
+    the report per tissue as JSON-able dicts and the wall time. Run in a child process by the command, in
+    parallel with the tetrahedral mesh (they are independent)."""
+    import time
+    from dataclasses import asdict
+
+    from needletissue.imaging.segment import Segmentation
+
+    t0 = time.perf_counter()
+    ts = surfaces(Segmentation.load(directory), regions)
+    ts.write(out)
+    reports = {n: {**asdict(r), "volume_change": r.volume_change} for n, r in ts.reports.items()}
+    return {"reports": reports, "wall_time_s": time.perf_counter() - t0}
+
+
 def label_boundaries(grid, *, smoothing: bool = False):
     """All interfaces between different labels (incl. background 0) as one conforming triangle set.
 

@@ -188,6 +188,49 @@ def _drop_small(mask: np.ndarray, min_voxels: int) -> np.ndarray:
     return keep[lab]
 
 
+def near_background(mask: np.ndarray, sampling, r: float) -> np.ndarray:
+    """Voxels of `mask` with a voxel outside it within Euclidean distance `r` (mm) in the array: the set
+    distance_transform_edt(mask, sampling) <= r, by a separable minimum over offsets |d_i| h_i <= r (exact
+    for distances up to r). The EDT's feature transform on the 4^3-refined bone grid took 25 of the 60 s
+    wall of `segment` on the loaded machine (int32 index arrays of 40 M voxels)."""
+    d2 = np.where(mask, np.float32(np.inf), np.float32(0.0))
+    for ax, h in enumerate(np.asarray(sampling, float)):
+        out = d2.copy()
+        a, b = [slice(None)] * d2.ndim, [slice(None)] * d2.ndim
+        for d in range(1, int(np.floor(r / h + 1e-9)) + 1):
+            w = np.float32((d * h) ** 2)
+            a[ax], b[ax] = slice(d, None), slice(None, -d)
+            np.minimum(out[tuple(a)], d2[tuple(b)] + w, out=out[tuple(a)])
+            np.minimum(out[tuple(b)], d2[tuple(a)] + w, out=out[tuple(b)])
+        d2 = out
+    return mask & (d2 <= np.float32(r * r * (1 + 1e-6)))
+
+
+def refine_linear(a: np.ndarray, k) -> np.ndarray:
+    """Each voxel split into k[0] x k[1] x k[2] sub-voxels, trilinear values at their centres, zero
+    outside: ndi.zoom(a, k, order=1, grid_mode=True, mode="grid-constant") (to float32 rounding) by one
+    two-point formula per axis and phase, 2.6x less CPU than zoom on the CT's bone box."""
+    out = np.asarray(a, np.float32)
+    for ax, kk in enumerate(int(v) for v in k):
+        if kk == 1:
+            continue
+        n = out.shape[ax]
+        pad = [(0, 0)] * out.ndim
+        pad[ax] = (1, 1)
+        p = np.pad(out, pad)
+        shp = list(out.shape)
+        shp[ax] = n * kk
+        res = np.empty(shp, np.float32)
+        for ph in range(kk):
+            off = (ph + 0.5) / kk - 0.5                 # sub-voxel centre - voxel centre, in voxels
+            j0, w = (0, off + 1.0) if off < 0 else (1, off)
+            s0, s1, so = [slice(None)] * out.ndim, [slice(None)] * out.ndim, [slice(None)] * out.ndim
+            s0[ax], s1[ax], so[ax] = slice(j0, j0 + n), slice(j0 + 1, j0 + 1 + n), slice(ph, None, kk)
+            res[tuple(so)] = np.float32(1.0 - w) * p[tuple(s0)] + np.float32(w) * p[tuple(s1)]
+        out = res
+    return out
+
+
 def split_bone(bone: np.ndarray, spacing, thickness: float, fine_spacing: float):
     """Cortical/cancellous split by an inward offset of the bone surface by `thickness` (mm).
 
@@ -204,16 +247,14 @@ def split_bone(bone: np.ndarray, spacing, thickness: float, fine_spacing: float)
     b = bone[sl]
     k = np.maximum(1, np.ceil(spacing / fine_spacing - 1e-9).astype(int))
     if np.all(k == 1):
-        depth = ndi.distance_transform_edt(b, sampling=spacing) - 0.5 * spacing.min()
-        cort = b & (depth <= thickness)
+        cort = near_background(b, spacing, thickness + 0.5 * spacing.min())
         frac_cort = float(cort.sum() / max(b.sum(), 1))
         info = {"fine_factor": [1, 1, 1], "fine_cortical_fraction": frac_cort}
     else:
         smooth = ndi.gaussian_filter(b.astype(np.float32), sigma=0.5)
-        fine = ndi.zoom(smooth, k, order=1, grid_mode=True, mode="grid-constant") >= 0.5
+        fine = refine_linear(smooth, k) >= 0.5
         fsp = spacing / k
-        depth = ndi.distance_transform_edt(fine, sampling=fsp) - 0.5 * fsp.min()
-        fcort = fine & (depth <= thickness)
+        fcort = near_background(fine, fsp, thickness + 0.5 * fsp.min())
         shp = (b.shape[0], k[0], b.shape[1], k[1], b.shape[2], k[2])
         nb = fine.reshape(shp).sum(axis=(1, 3, 5))
         nc = fcort.reshape(shp).sum(axis=(1, 3, 5))
@@ -221,7 +262,7 @@ def split_bone(bone: np.ndarray, spacing, thickness: float, fine_spacing: float)
         cort = b & ((2 * nc >= nb) | (nb == 0))
         info = {"fine_factor": k.tolist(), "fine_spacing_mm": fsp.tolist(),
                 "fine_cortical_fraction": float(fcort.sum() / max(fine.sum(), 1))}
-        del fine, fcort, depth, smooth
+        del fine, fcort, smooth
     cortical = np.zeros_like(bone)
     cortical[sl] = cort
     cancellous = bone & ~cortical
