@@ -3,11 +3,13 @@
     python benchmarks/newton_study.py tangent [--mesh 8,3,30]     # FD check of each body's tangent
     python benchmarks/newton_study.py trace [--mesh 8,3,30] [--substeps 0] [--tissue neo_hooke]
                                            [--clamp-E 2000] [--solver scipy] [--armijo]
+                                           [--bulk-ratio 100] [--no-predictor]
 
 The model is `fe needle`'s (two needles, 100/200/300 N lateral, tet10, mixed tissue), on a mesh of
 --mesh "size,needle size,far size" mm (default 8,3,30: 31,032 free dofs; `fe needle`'s own is 4,2,20),
-meshed once into benchmarks/results/. Options that change the model (--tissue, --clamp-E) are
-diagnostics only.
+meshed once into benchmarks/results/. Options that change the model (--tissue, --clamp-E, --bulk-ratio:
+tissue K/mu0, 100 = the K before issue 16) are diagnostics only. trace solves with the linear predictor
+unless --no-predictor (the needle and pelvis models solve without it since issue 16).
 
 tangent: at the converged 100 N state, |(r(x + h v) - r(x - h v)) / 2h - K v| / |K v| per body along a
   random direction v, for h = 1e-3 .. 1e-7 (O(h^2) down to round-off: a consistent tangent).
@@ -28,10 +30,10 @@ HERE = Path(__file__).resolve().parent
 FORCES = (100.0, 200.0, 300.0)
 
 
-def build(mesh_sizes, formulation="mixed", tissue=None, clamp_E=None):
+def build(mesh_sizes, formulation="mixed", tissue=None, clamp_E=None, bulk_ratio=None):
     from needletissue.fem import Fixed, FEModel, SurfaceForce, TaggedMesh
     from needletissue.geometry.needle import NeedleGeometry, mesh_needle_model
-    from needletissue.materials import Material, get
+    from needletissue.materials import Material, get, tissue_bulk
     from needletissue.models.needle.model import MATERIALS
 
     ms, nms, fms = mesh_sizes
@@ -47,7 +49,7 @@ def build(mesh_sizes, formulation="mixed", tissue=None, clamp_E=None):
             mats[r] = Material(f"{r}_{tissue}", tissue, {"mu": m.initial_shear_modulus}, bulk_modulus=m.bulk)
     if clamp_E:
         mats["clamp"] = Material("clamp_E", "elastic", {"E": clamp_E, "nu": 0.3})
-    model = FEModel(mesh, mats, order=2, formulation=formulation)
+    model = FEModel(mesh, mats, order=2, formulation=formulation, bulk=tissue_bulk(mats, bulk_ratio))
     bcs = [Fixed("bone_fixed"), Fixed("tissue_far"), SurfaceForce("gripper", total=(0.0, max(FORCES), 0.0))]
     return model, bcs
 
@@ -80,7 +82,7 @@ def trace(a):
     from needletissue.fem import solve
     from needletissue.models.needle.model import rigid_fit
 
-    model, bcs = build(a.mesh, tissue=a.tissue, clamp_E=a.clamp_E)
+    model, bcs = build(a.mesh, tissue=a.tissue, clamp_E=a.clamp_E, bulk_ratio=a.bulk_ratio)
     mesh = model.mesh
     owner = np.full(len(mesh.points), "", dtype=object)
     for r, ids in mesh.regions.items():
@@ -107,7 +109,8 @@ def trace(a):
     c0 = time.process_time()
     try:
         res = solve(model, bcs, load_factors=[f / max(FORCES) for f in FORCES], progress=False, results=False,
-                    substeps=0 if a.armijo else a.substeps, solver=a.solver, linesearch=a.armijo or None)
+                    substeps=0 if a.armijo else a.substeps, solver=a.solver, linesearch=a.armijo or None,
+                    predictor=not a.no_predictor)
     except ConvergenceError as exc:  # e.g. --armijo
         print(f"failed after {time.process_time() - c0:.1f} s CPU: {exc}")
         return
@@ -140,6 +143,8 @@ def main():
     ap.add_argument("--tissue", default=None, help="e.g. neo_hooke: both tissues with their mu0 and bulk")
     ap.add_argument("--clamp-E", type=float, default=None)
     ap.add_argument("--solver", default="auto")
+    ap.add_argument("--bulk-ratio", type=float, default=None, help="tissue K/mu0 (default: the materials' K)")
+    ap.add_argument("--no-predictor", action="store_true", help="as the needle and pelvis models solve")
     ap.add_argument("--armijo", action="store_true", help="backtracking line search on |r| (plain Newton)")
     a = ap.parse_args()
     {"tangent": tangent, "trace": trace}[a.what](a)

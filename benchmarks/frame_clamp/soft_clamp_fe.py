@@ -32,7 +32,9 @@ def run_fe(E: float, force: float = 100.0, directions=((1.0, 0.0, 0.0), (0.0, 1.
                                 source=f"soft clamp for benchmarks/frame_clamp/soft_clamp_fe.py (steel / {200000 / E:g})"))
     out = {"clamp_E_MPa": E, "cases": []}
     for direction in directions:
-        cfg = NeedleModelConfig(forces=(force,), direction=direction, ritz=False)
+        # K = 100 mu0: the K soft_clamp_fe.json was computed at (the default before issue 16)
+        cfg = NeedleModelConfig(forces=(force,), direction=direction, ritz=False,
+                                tissue_bulk_ratio=materials.TISSUE_BULK_RATIO)
         res = run_needle_model(cfg)
         r = res.results[0]
         out["cases"].append({"direction": list(direction), "force_N": force,

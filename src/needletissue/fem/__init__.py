@@ -11,8 +11,8 @@ Units: mm, N, MPa. See docs/fem.md.
 """
 
 from needletissue.fem.mesh import TaggedMesh
-from needletissue.fem.model import FEModel, Fixed, PrescribedDisplacement, SurfaceForce
+from needletissue.fem.model import FEModel, Fixed, LockingWarning, PrescribedDisplacement, SurfaceForce
 from needletissue.fem.result import FEResult, write_results
 from needletissue.fem.solve import solve
 
-__all__ = ["TaggedMesh", "FEModel", "Fixed", "PrescribedDisplacement", "SurfaceForce", "FEResult", "solve", "write_results"]
+__all__ = ["TaggedMesh", "FEModel", "Fixed", "LockingWarning", "PrescribedDisplacement", "SurfaceForce", "FEResult", "solve", "write_results"]

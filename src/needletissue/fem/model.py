@@ -16,6 +16,10 @@ from needletissue.fem.mesh import TaggedMesh
 FORMULATIONS = ("displacement", "mixed")
 
 
+class LockingWarning(UserWarning):
+    """Linear tetrahedra with nearly incompressible tissue: the result is too stiff (volumetric locking)."""
+
+
 # ---------------------------------------------------------------------- boundary conditions
 @dataclass(frozen=True)
 class Fixed:
@@ -97,6 +101,15 @@ class FEModel:
         self.formulation = formulation
         self.materials = {r: _materials.get(m) for r, m in materials.items()}
         self.bulk = {r: float(bulk.get(r, self.materials[r].bulk)) for r in mesh.regions}
+        tissue = {r: self.bulk[r] / m.initial_shear_modulus for r, m in self.materials.items() if m.model != "elastic"}
+        if order == 1 and tissue:
+            import warnings
+
+            ratios = ", ".join(f"{r} {k:.3g}" for r, k in tissue.items())
+            warnings.warn(f"order=1: linear tetrahedra lock with nearly incompressible tissue (K/mu0: {ratios}); "
+                          "P1/P0 equals P1 with the one-point rule, so the tissue and the needles' bending are "
+                          "too stiff (docs/needle_model.md, 'Order 1'). Use order=2 (P2/P0) for results.",
+                          LockingWarning, stacklevel=2)
 
         if order == 1:
             region_cls, quad = fem.RegionTetra, fem.TetrahedronQuadrature(order=quadrature_order or 1)

@@ -10,11 +10,12 @@
 
 from needletissue.materials.laws import mooney_rivlin_5
 from needletissue.materials.registry import (
-    HYPERELASTIC_MODELS, MODELS, TISSUE_BULK_RATIO, Material, get, load_toml, names, register,
+    HYPERELASTIC_MODELS, MODELS, TISSUE_BULK_MODULUS, TISSUE_BULK_RATIO, Material, get, load_toml, names,
+    register, tissue_bulk,
 )
 from needletissue.materials.stability import UnstableMaterialWarning
 
 __all__ = [
-    "HYPERELASTIC_MODELS", "MODELS", "TISSUE_BULK_RATIO", "Material", "get", "load_toml", "names",
-    "register", "mooney_rivlin_5", "UnstableMaterialWarning",
+    "HYPERELASTIC_MODELS", "MODELS", "TISSUE_BULK_MODULUS", "TISSUE_BULK_RATIO", "Material", "get",
+    "load_toml", "names", "register", "tissue_bulk", "mooney_rivlin_5", "UnstableMaterialWarning",
 ]

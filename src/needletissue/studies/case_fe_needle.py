@@ -5,7 +5,7 @@ Parameters (units in the names): force_N (> 0), diameter_mm, free_length_mm, spa
 cortical_thickness_mm, muscle_thickness_mm, adipose_thickness_mm, direction_angle_deg (force direction
 in the x-y plane, from +y towards +x: 0 = across the needles' plane, the default; 90 = in it, the
 portal frame), load_offset_{x,y,z}_mm (load point - gripper centre: a moment r x F), mesh_size_mm,
-needle_mesh_size_mm or needle_mesh_size_per_diameter, far_mesh_size_mm. Settings: needles (1 or 2),
+needle_mesh_size_mm or needle_mesh_size_per_diameter, far_mesh_size_mm, tissue_bulk_ratio (K/mu0). Settings: needles (1 or 2),
 forces_N ("50,100,200": one load path per case instead of force_N; the scalar outputs are those at
 the largest force, `per_force_json` holds every force's results). Tissue material parameters are the
 registry's (paper values); vary the tissue through the Ritz model's spring stiffnesses instead.
@@ -53,6 +53,8 @@ PARAMETERS = {
     "needle_mesh_size_per_diameter": ParamInfo("Element size on the needles / needle diameter (dimensionless; "
                                                "instead of needle_mesh_size_mm).", gt=0, le=1),
     "far_mesh_size_mm": ParamInfo("Element size at the far boundary, mm.", gt=0),
+    "tissue_bulk_ratio": ParamInfo("Tissue bulk modulus / initial shear modulus K/mu0 (dimensionless; default: "
+                                   "the materials' K, 10 MPa; 100 = the K before issue 16).", ge=1, le=1e6),
 }
 SETTINGS = {"needles": "1 (like-for-like with Ritz) or 2 needles joined by the clamp.",
             "forces_N": "Forces of one load path per case, N, comma-separated (e.g. \"50,100,200,300\"); "
@@ -83,8 +85,9 @@ def case_config(values: dict) -> NeedleModelConfig:
     forces = parse_forces(values["forces_N"]) if "forces_N" in values else (float(values["force_N"]),)
     a = math.radians(float(values.get("direction_angle_deg", 0.0)))
     offset = tuple(float(values.get(f"load_offset_{c}_mm", 0.0)) for c in "xyz")
+    ratio = float(values["tissue_bulk_ratio"]) if "tissue_bulk_ratio" in values else None
     return NeedleModelConfig(geometry=NeedleGeometry(**geom), forces=forces,
-                             direction=(math.sin(a), math.cos(a), 0.0), load_offset=offset)
+                             direction=(math.sin(a), math.cos(a), 0.0), load_offset=offset, tissue_bulk_ratio=ratio)
 
 
 def _per_force(r, res) -> dict:

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from needletissue.errors import InputError, check_force, check_number
+from needletissue.materials import tissue_bulk
 
 PAPER = {
     "forces_N": [100.0, 200.0, 300.0],
@@ -103,7 +104,8 @@ class PelvisConfig:
     cortical_thickness: float = 1.5
     ssm_spacing: float = 2.0
     order: int = 2
-    formulation: str = "displacement"
+    formulation: str = "mixed"
+    tissue_bulk_ratio: float | None = None  # K/mu0 of the tissue; None: the materials' K
     si_joint: str = "fixed"
     interfaces: str = "bonded"
     friction: dict = field(default_factory=dict)
@@ -144,6 +146,7 @@ class PelvisConfig:
             check_number("far_size", self.far_size, ge=self.mesh_size, le=60)
         if self.formulation not in ("displacement", "mixed"):
             raise InputError("formulation", f"must be 'displacement' or 'mixed', got {self.formulation!r}")
+        tissue_bulk(MATERIALS, self.tissue_bulk_ratio)  # checks the ratio
 
 
 @dataclass
@@ -325,8 +328,9 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
                                                                      ("eps_v", config.contact_eps_v)) if v is not None}),
                                 materials=MATERIALS)
         tm_solve = contact.prepare(tm_solve)  # split the contact interfaces (duplicate their nodes)
-    model = FEModel(tm_solve, {r: MATERIALS[r] for r in tm.regions}, order=config.order,
-                    formulation=config.formulation)
+    mats = {r: MATERIALS[r] for r in tm.regions}
+    model = FEModel(tm_solve, mats, order=config.order, formulation=config.formulation,
+                    bulk=tissue_bulk(mats, config.tissue_bulk_ratio))
     items = contact.items(model) if contact is not None else ()
     t_model = time.perf_counter() - t0 - t_mesh
     fdir = force_unit(config, pm.site)
@@ -337,7 +341,8 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
         bcs.append(Fixed("sacroiliac_joint"))
     bcs.append(SurfaceForce("gripper", total=tuple(fmax * fdir)))
     factors = [f / fmax for f in config.forces]
-    fe = solve(model, bcs, load_factors=factors, solver=config.solver, progress=config.progress, items=items)
+    fe = solve(model, bcs, load_factors=factors, solver=config.solver, progress=config.progress, items=items,
+               predictor=False)  # as the needle model: the predictor fails at the tissue's K (bench.md)
     t_solve = time.perf_counter() - t0 - t_mesh - t_model
 
     qm = model.mesh
