@@ -663,8 +663,8 @@ def cubic_table_rows(l, K, z3, cos_term, tab, V, G, ZQ, GW):
         V[p + n] = V[p + n - 4] * il4
     nl = K.shape[0]
     for i in range(_NVK):
-        V[i] = K[0] * G[0, i]
-    for j in range(1, nl):
+        V[i] = 0.0
+    for j in range(nl):  # nl may be 0 (no tissue)
         kj = K[j]
         for i in range(_NVK):
             V[i] += kj * G[j, i]
