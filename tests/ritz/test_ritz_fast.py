@@ -96,17 +96,58 @@ def test_closed_form_order3_on_random_models_and_stiff_tissue(monkeypatch, cos):
 
 
 def test_force_only_batch_shares_one_model_row(monkeypatch):
-    """Scalars for every model parameter: one table for the batch; the same numbers as one row each."""
+    """Scalars for every model parameter: one table for the batch; the same numbers as one row each
+    (kernel.cubic_table_rows: round-off apart, the same iterations)."""
     F = np.random.default_rng(3).uniform(-2000, 2000, 500)
     model = RitzModel(load_point_mm=70.0)  # solve_batch takes the load point as an argument only
     shared = ritz.solve_batch(F, model=model, load_point_mm=70.0, parallel=False, error_estimate=False)
     d = np.full(F.size, model.diameter_mm)  # an array: one model row per sample
     rows = ritz.solve_batch(F, model=model, load_point_mm=70.0, diameter_mm=d, parallel=False,
                             error_estimate=False)
-    for f in FIELDS + ("iterations", "free_length_mm"):
-        np.testing.assert_array_equal(getattr(shared, f), getattr(rows, f), err_msg=f)
+    _assert_same(shared, rows)
     one = [ritz.solve(f, model) for f in F[:5]]  # the control-loop path, one force at a time
     np.testing.assert_allclose(shared.tip_deflection_mm[:5], [r.tip_deflection_mm for r in one], rtol=1e-13)
+
+
+@pytest.mark.parametrize("cos", [True, False])
+def test_model_rows_sharing_thicknesses_equal_one_model_each(cos):
+    """Rows with every parameter random but the thicknesses in runs (the per-row table from the
+    thickness columns, reused within a run and rebuilt between runs) against each row alone (one
+    cubic_table): the same iterations, answers and estimates to round-off."""
+    rng = np.random.default_rng(11)
+    kw = _random_batch(rng, 60)
+    kw["thickness_mm"] = np.repeat(kw["thickness_mm"][:4], 15, axis=0)
+    model = RitzModel(cos_term=cos)
+    rows = ritz.solve_batch(**kw, model=model, parallel=False)
+    one = [ritz.solve_batch(**{a: v[i:i + 1] for a, v in kw.items() if v is not None}, model=model,
+                            parallel=False) for i in range(60)]
+    assert np.array_equal(rows.iterations, [b.iterations[0] for b in one])
+    for f in FIELDS + ("error_estimate_mm",):
+        a = np.concatenate([getattr(b, f) for b in one])
+        np.testing.assert_allclose(getattr(rows, f), a, rtol=1e-12,
+                                   atol=1e-12 * np.abs(rows.max_deflection_mm).max(), err_msg=f)
+
+
+def test_per_row_table_is_cubic_table():
+    """kernel.cubic_table_rows (thickness columns times powers of 1 / l) against cubic_table on random
+    models: to 1e-13, zeros where cubic_table has zeros, _post's Gauss points exactly."""
+    GX, GW = basis.gauss_tables()
+    rng = np.random.default_rng(5)
+    for cos in (True, False):
+        for _ in range(100):
+            nl = int(rng.integers(1, 5))
+            T, K = rng.uniform(0.01, 30, nl), rng.uniform(1e-3, 1.0, nl)
+            l = T.sum() * rng.uniform(1, 3)
+            z3 = l * rng.uniform(0.5, 1)
+            ref, tab = np.empty((2, kernel.table_size(nl, cos)))
+            mu = np.empty(kernel._NMU)
+            kernel.cubic_table(l, T, K, z3, cos, ref, mu, GX, GW)
+            G, ZQ = np.empty((nl, kernel._NVK)), np.empty((nl, 12))
+            kernel.thickness_table(T, cos, G, ZQ, mu, GX, GW)
+            kernel.cubic_table_rows(l, K, z3, cos, tab, np.empty(kernel._NVK + 27), G, ZQ, GW)
+            np.testing.assert_array_equal(tab[kernel._PHI3:], ref[kernel._PHI3:])
+            assert np.array_equal(tab == 0, ref == 0)
+            np.testing.assert_allclose(tab, ref, rtol=1e-13, atol=0)
 
 
 def test_without_error_estimate_the_answer_is_the_same_and_says_so():

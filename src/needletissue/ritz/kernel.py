@@ -571,7 +571,7 @@ _UW4 = _mul(_UW2, _UW2)
 _NV, _NH = 24, 48
 _PHI3 = _NV + 2 * _NH
 _NTAB = _PHI3 + 3
-_NMU = 108  # cubic_table's scratch
+_NMU = 132  # cubic_table's scratch
 _INV = 1.0 / np.arange(1.0, 25.0)  # _INV[n - 1] = 1 / n (multiplications, not divisions, per moment)
 # Beyond these the closed form hands the sample to the Gauss path, which then reports exactly what it
 # always did (overflow to inf/nan happens at other magnitudes in the two forms); both are far outside
@@ -610,10 +610,119 @@ def cubic_table(l, T, K, z3, cos_term, tab, mu, GX, GW):
     """Fill tab (table_size) with the order-3 energy forms of one model (geometry and k; not F), and
     the order-4 forms at c = 0 of the error estimate's Newton step. mu: scratch of _NMU floats
     (offsets, not slices: a slice costs two reference-count updates)."""
-    # mu[m] = sum_j k_j int_layer s^m ds; per layer [sa, sb]: mu[24 + n] = sb^n - sa^n, mu[48 + n] = sa^n
+    _moments(1.0 / l, T, K, mu)
+    _forms_table(l, z3, cos_term, tab, mu)
+    _gauss_points(1.0 / l, T, K, cos_term, tab, GX, GW)
+
+
+# The forms' coefficients by power k of c: V[:24] (k = 0, the value forms), V[24:44] (k = 1) and
+# V[44:60] (k = 2), from which _expand derives the rest of the table. A row of a batch that shares its
+# layer thicknesses with the previous row gets V from precomputed columns (cubic_table_rows): V is
+# linear in the k_j and V[i] scales as l^-_LPOW[i] (s = z / l; a term b^i c^k of a form of degree d
+# carries s^(2d + 2k + i) after the l of dz = l ds).
+_LPOW = np.array([2 * d + 2 * k + i for k in range(3) for d in (2, 4, 6, 8) for i in range(d + 1 - k)])
+_NVK = 60
+
+
+@njit(cache=True)
+def thickness_table(T, cos_term, G, ZQ, mu, GX, GW):
+    """G[j] = V at l = 1, k = unit in layer j; ZQ[j, g] = z of _post's Gauss point g, and ZQ[j, 11]
+    the half-thickness (mu: scratch of _NMU floats)."""
+    nl = T.shape[0]
+    e = np.zeros(nl)
+    for j in range(nl):
+        e[j] = 1.0
+        _moments(1.0, T, e, mu)
+        e[j] = 0.0
+        _all_forms(mu, 1.0, 1.0 if cos_term else 0.0, mu, 72)
+        for i in range(_NVK):
+            G[j, i] = mu[72 + i]
+    nq = 11 if cos_term else 7
+    za = 0.0
+    for j in range(nl):
+        zb = za + T[j]
+        half = 0.5 * (zb - za)
+        for g in range(nq):
+            ZQ[j, g] = za + half * (GX[nq, g] + 1.0)
+        ZQ[j, 11] = half
+        za = zb
+
+
+@njit(cache=True)
+def cubic_table_rows(l, K, z3, cos_term, tab, V, G, ZQ, GW):
+    """cubic_table from thickness_table's G, ZQ (the forms equal to a few ulp, the Gauss points
+    exactly); V: scratch of _NVK + 27 floats."""
+    il = 1.0 / l
+    il4 = (il * il) * (il * il)
+    p = _NVK  # V[p + n] = il^n, in four independent chains
+    V[p] = 1.0
+    V[p + 1] = il
+    V[p + 2] = il * il
+    V[p + 3] = V[p + 2] * il
+    for n in range(4, 27):
+        V[p + n] = V[p + n - 4] * il4
+    nl = K.shape[0]
+    for i in range(_NVK):
+        V[i] = 0.0
+    for j in range(nl):  # nl may be 0 (no tissue)
+        kj = K[j]
+        for i in range(_NVK):
+            V[i] += kj * G[j, i]
+    for i in range(_NVK):
+        V[i] *= V[p + _LPOW[i]]
+    _expand(V, 0, tab)
+    _phi3(l, z3, tab)
+    nq = 11 if cos_term else 7
+    q = _NTAB
+    for j in range(nl):
+        w = K[j] * ZQ[j, 11]
+        for g in range(nq):
+            tab[q] = ZQ[j, g] * il
+            tab[q + nl * nq] = w * GW[nq, g]
+            q += 1
+
+
+@njit(cache=True, inline="always")
+def _all_forms(mu, l, il2, V, o):
+    """V (at V[o:]) from the moments mu[:24]."""
+    _value_forms(0, mu, l, il2, V, o)
+    _value_forms(1, mu, l, il2, V, o + 24)
+    _value_forms(2, mu, l, il2, V, o + 44)
+
+
+@njit(cache=True, inline="always")
+def _expand(V, o, tab):
+    """tab[:_PHI3] from V (at V[o:]): the Hessian forms and, at c = 0, the c-derivatives (d2/da2 of
+    a^(d-i) b^i is (d-i)(d-i-1) a^(d-2-i) b^i, and so on; loops per degree: an index list was slower)."""
+    for i in range(_NV):
+        tab[i] = V[o + i]
+    kh = _NV
+    kc = _NV + _NH
+    off = o
+    o1 = o + 24
+    o2 = o + 44
+    for d in range(2, 10, 2):
+        for j in range(d - 1):
+            tab[kh] = (d - j) * (d - j - 1) * V[off + j]
+            tab[kh + 1] = (d - j - 1) * (j + 1) * V[off + j + 1]
+            tab[kh + 2] = (j + 2) * (j + 1) * V[off + j + 2]
+            kh += 3
+        for j in range(d - 1):
+            tab[kc] = (d - 1 - j) * V[o1 + j]
+            tab[kc + 1] = (j + 1) * V[o1 + j + 1]
+            tab[kc + 2] = 2.0 * V[o2 + j]
+            kc += 3
+        off += d + 1
+        o1 += d
+        o2 += d - 1
+
+
+@njit(cache=True, inline="always")
+def _moments(il, T, K, mu):
+    """mu[m] = sum_j k_j int_layer s^m ds, s = z il (mu[24:72]: scratch)."""
+    # per layer [sa, sb]: mu[24 + n] = sb^n - sa^n, mu[48 + n] = sa^n
     for m in range(24):
         mu[m] = 0.0
-    il = 1.0 / l
     sa = 0.0
     for j in range(T.shape[0]):
         h = T[j] * il
@@ -637,38 +746,27 @@ def cubic_table(l, T, K, z3, cos_term, tab, mu, GX, GW):
         for n in range(5, 24):
             mu[n - 1] += kj * mu[24 + n] * _INV[n - 1]
         sa = sb
-    cs = 1.0 if cos_term else 0.0
-    il2 = cs / (l * l)
-    # the forms' coefficients by power k of c: k = 0, the value forms (tab[0:24]); k = 1 and 2 at c = 0,
-    # mu[72:92] and mu[92:108] (only their derivatives are kept)
-    _value_forms(0, mu, l, il2, tab, 0)
-    _value_forms(1, mu, l, il2, mu, 72)
-    _value_forms(2, mu, l, il2, mu, 92)
-    # Hessian forms: d2/da2 of a^(d-i) b^i is (d-i)(d-i-1) a^(d-2-i) b^i, and so on; at c = 0 the
-    # c-derivatives of the a^(d-1-i) b^i c and a^(d-2-i) b^i c^2 terms
-    kh = _NV
-    kc = _NV + _NH
-    off = 0
-    o1 = 72
-    o2 = 92
-    for d in range(2, 10, 2):
-        for j in range(d - 1):
-            tab[kh] = (d - j) * (d - j - 1) * tab[off + j]
-            tab[kh + 1] = (d - j - 1) * (j + 1) * tab[off + j + 1]
-            tab[kh + 2] = (j + 2) * (j + 1) * tab[off + j + 2]
-            kh += 3
-        for j in range(d - 1):
-            tab[kc] = (d - 1 - j) * mu[o1 + j]
-            tab[kc + 1] = (j + 1) * mu[o1 + j + 1]
-            tab[kc + 2] = 2.0 * mu[o2 + j]
-            kc += 3
-        off += d + 1
-        o1 += d
-        o2 += d - 1
+
+
+@njit(cache=True, inline="always")
+def _forms_table(l, z3, cos_term, tab, mu):
+    """tab[:_NTAB] from the moments mu[:24] (mu[72:132]: scratch)."""
+    _all_forms(mu, l, (1.0 if cos_term else 0.0) / (l * l), mu, 72)
+    _expand(mu, 72, tab)
+    _phi3(l, z3, tab)
+
+
+@njit(cache=True, inline="always")
+def _phi3(l, z3, tab):
     s3 = z3 / l
     tab[_PHI3] = 0.5 * s3 * s3
     tab[_PHI3 + 1] = _R3 * (s3 * s3 * s3 / 3.0 - 0.5 * s3 * s3)
     tab[_PHI3 + 2] = s3 * s3 * (_M4[2, 0] + s3 * (_M4[2, 1] + s3 * _M4[2, 2]))
+
+
+@njit(cache=True, inline="always")
+def _gauss_points(il, T, K, cos_term, tab, GX, GW):
+    """tab[_NTAB:]: the Gauss points of _post's reaction rule."""
     nq = 11 if cos_term else 7
     nl = T.shape[0]
     q = _NTAB
@@ -1221,6 +1319,10 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
     step4 = cubic and mono4 and step and not auto
     if cubic and shared:
         cubic_table(L[0], T[0], K[0], Z3[0], cos_term, tab, mu, GX, GW)
+    G = np.empty((nl, _NVK))  # thickness_table of the thicknesses Tc
+    ZQ = np.empty((nl, 12))
+    V = np.empty(_NVK + 27)
+    Tc = np.full(nl, np.nan)
     for m in range(start, stop):
         g = 0 if shared else m
         for i in range(pmax):
@@ -1229,7 +1331,13 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
         gauss = True
         if cubic:
             if not shared:
-                cubic_table(L[g], T[g], K[g], Z3[g], cos_term, tab, mu, GX, GW)
+                same = True
+                for j in range(nl):
+                    same = same and T[g, j] == Tc[j]
+                if not same:
+                    thickness_table(T[g], cos_term, G, ZQ, mu, GX, GW)
+                    Tc[:] = T[g]
+                cubic_table_rows(L[g], K[g], Z3[g], cos_term, tab, V, G, ZQ, GW)
             it, st, eb, es, wk_ = _newton3c(c, F[m], KB[g], tab, pw)
             gauss = st == FALLBACK
             if gauss:
