@@ -113,6 +113,17 @@ def test_crop_and_regions(boxes_mesh):
         MeshConfig(size=0).validate()
 
 
+def test_tetgen_bounds_per_route_and_overrides():
+    # the smooth route leaves the angles to its optimisation (no dihedral bound, tighter ratio)
+    assert MeshConfig(method="smooth").tetgen_bounds() == (1.6, 0.0)
+    assert MeshConfig(method="voxel").tetgen_bounds() == (2.0, 10.0)
+    assert MeshConfig(method="smooth", min_dihedral=10, max_radius_edge=2).validate().tetgen_bounds() == (2, 10)
+    with pytest.raises(InputError, match="min_dihedral"):
+        MeshConfig(min_dihedral=40).validate()
+    with pytest.raises(InputError, match="max_radius_edge"):
+        MeshConfig(max_radius_edge=1.0).validate()
+
+
 def test_bone_surface_split_by_bone(boxes_mesh):
     import SimpleITK as sitk
 
