@@ -35,19 +35,21 @@ def register(app: typer.Typer, groups) -> None:
     ):
         """CT -> tissue label map (bone cortical/cancellous, muscles, adipose) on the CT grid."""
         from needletissue.imaging.segment import SegmentationConfig, segment
-        from needletissue.runinfo import write_run_files
+        from needletissue.runinfo import staged_output, write_run_files
 
         cfg = SegmentationConfig(cortical_thickness=cortical_thickness, split_sides=split_sides)
         t0 = time.perf_counter()
         seg = segment(ct, labels, cfg)
-        paths = seg.save(out)
-        results = {"tissues": seg.tissues, "volumes_mm3": seg.stats["volumes_mm3"],
-                   "bone_split": seg.stats["bone_split"], "source": seg.stats["source"],
-                   "files": {k: str(v) for k, v in paths.items()},
-                   "wall_time_s": time.perf_counter() - t0}
-        write_run_files(out, {"ct": str(ct), "labels": str(labels) if labels else None,
-                              "segmentation": seg.stats["config"]}, results)
-        typer.echo(f"{len(seg.tissues)} tissues -> {paths['tissues']} ({results['wall_time_s']:.1f} s)")
+        with staged_output(out) as stage:  # a stopped run leaves out as it was
+            paths = seg.save(stage)
+            results = {"tissues": seg.tissues, "volumes_mm3": seg.stats["volumes_mm3"],
+                       "bone_split": seg.stats["bone_split"], "source": seg.stats["source"],
+                       "files": {k: str(v) for k, v in paths.items()},
+                       "wall_time_s": time.perf_counter() - t0}
+            write_run_files(stage, {"ct": str(ct), "labels": str(labels) if labels else None,
+                                    "segmentation": seg.stats["config"]}, results)
+        typer.echo(f"{len(seg.tissues)} tissues -> {Path(out) / paths['tissues'].name} "
+                   f"({results['wall_time_s']:.1f} s)")
 
     @app.command("mesh")
     def mesh_cmd(
@@ -74,7 +76,7 @@ def register(app: typer.Typer, groups) -> None:
 
         from needletissue.geometry.tetmesh import MeshConfig, tet_mesh
         from needletissue.imaging.segment import Segmentation
-        from needletissue.runinfo import make_dir, write_json, write_run_files
+        from needletissue.runinfo import staged_output, write_json, write_run_files
 
         seg = Segmentation.load(directory)
         box = None
@@ -84,40 +86,42 @@ def register(app: typer.Typer, groups) -> None:
             box = tuple(_floats("crop", crop, 6))
         cfg = MeshConfig(size=size, regions=regions.split(",") if regions else None, crop=box,
                          method=method).validate()
-        make_dir(out)  # fail before minutes of meshing, not after
-        t0 = time.perf_counter()
-        results, view = {}, None
-        if surfaces_out:   # independent of the tetrahedral mesh: a child process makes them meanwhile
-            from needletissue.geometry.child import start_in_child
+        # every file goes into a hidden folder inside out, moved into place at the end: a run stopped
+        # or failed meanwhile leaves out as it was (and out is checked before minutes of meshing)
+        with staged_output(out) as stage:
+            t0 = time.perf_counter()
+            results, view = {}, None
+            if surfaces_out:   # independent of the tetrahedral mesh: a child process makes them meanwhile
+                from needletissue.geometry.child import start_in_child
 
-            view = start_in_child("needletissue.geometry.surfaces:write_surfaces",
-                                  {"directory": str(directory), "regions": cfg.regions,
-                                   "out": str(Path(out) / "surfaces")}, what="the tissue surfaces")
-        t1 = time.perf_counter()
-        mesh = tet_mesh(seg, config=cfg)
-        t2 = time.perf_counter()
-        mesh.write_msh(Path(out) / "mesh.msh")
-        mesh.write_vtu(Path(out) / "mesh.vtu")
-        t3 = time.perf_counter()
-        if surfaces_out:
-            view = view()
-            results["surfaces"] = view["reports"]
-            bad = [n for n, r in results["surfaces"].items() if not (r["watertight"] and r["manifold"])]
-            if bad:
-                typer.echo(f"warning: surfaces not watertight/manifold: {', '.join(bad)}", err=True)
-        t4 = time.perf_counter()
-        q = mesh.quality()
-        if fidelity:
-            from needletissue.geometry.fidelity import mesh_fidelity
+                view = start_in_child("needletissue.geometry.surfaces:write_surfaces",
+                                      {"directory": str(directory), "regions": cfg.regions,
+                                       "out": str(stage / "surfaces")}, what="the tissue surfaces")
+            t1 = time.perf_counter()
+            mesh = tet_mesh(seg, config=cfg)
+            t2 = time.perf_counter()
+            mesh.write_msh(stage / "mesh.msh")
+            mesh.write_vtu(stage / "mesh.vtu")
+            t3 = time.perf_counter()
+            if surfaces_out:
+                view = view()
+                results["surfaces"] = view["reports"]
+                bad = [n for n, r in results["surfaces"].items() if not (r["watertight"] and r["manifold"])]
+                if bad:
+                    typer.echo(f"warning: surfaces not watertight/manifold: {', '.join(bad)}", err=True)
+            t4 = time.perf_counter()
+            q = mesh.quality()
+            if fidelity:
+                from needletissue.geometry.fidelity import mesh_fidelity
 
-            results["fidelity"] = asdict(mesh_fidelity(seg, mesh, cfg))
-        results.update({"quality": asdict(q), "materials": mesh.materials, "mesh_info": mesh.info,
-                        "surfaces_in_msh": {k: int(len(v)) for k, v in mesh.surfaces.items()},
-                        "wall_time_s": {"surfaces": view["wall_time_s"] if view else 0.0,
-                                        "tet_mesh": t2 - t1, "write": t3 - t2, "surfaces_wait": t4 - t3,
-                                        "total": time.perf_counter() - t0}})
-        write_json(Path(out) / "mesh.json", {"regions": mesh.materials, "quality": asdict(q)})
-        write_run_files(out, {"dir": str(directory), "mesh": asdict(cfg)}, results)
+                results["fidelity"] = asdict(mesh_fidelity(seg, mesh, cfg))
+            results.update({"quality": asdict(q), "materials": mesh.materials, "mesh_info": mesh.info,
+                            "surfaces_in_msh": {k: int(len(v)) for k, v in mesh.surfaces.items()},
+                            "wall_time_s": {"surfaces": view["wall_time_s"] if view else 0.0,
+                                            "tet_mesh": t2 - t1, "write": t3 - t2, "surfaces_wait": t4 - t3,
+                                            "total": time.perf_counter() - t0}})
+            write_json(stage / "mesh.json", {"regions": mesh.materials, "quality": asdict(q)})
+            write_run_files(stage, {"dir": str(directory), "mesh": asdict(cfg)}, results)
         typer.echo(f"{q.n_tetrahedra} tetrahedra, {q.n_nodes} nodes, {len(mesh.regions)} regions, "
                    f"min dihedral {q.min_dihedral_deg:.1f} deg, min radius ratio "
                    f"{q.min_radius_ratio:.3f} -> {Path(out) / 'mesh.msh'}")
