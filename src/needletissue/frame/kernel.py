@@ -735,12 +735,84 @@ def integrate_lanes(s, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, k1, k2, k3, k4, t, 
 
 
 @njit(cache=True)
-def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, maxit,
-                 lanes, out, status):
+def lane_jacobians(Ys, W, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, h, Js):
+    """Central-difference Jacobians (step h) of the residual at the points Ys (npt, N) into Js (npt, N, N); every
+    pin integration (each point and its +-h perturbations of the pin's 6 unknowns) runs in lanes of 32.
+    Central, not forward: the shooting residual is so curved in the tip unknowns that a forward difference's
+    truncation error (~1 % of the inverse tangent at step 1e-7) limits the batch's predictor, not its order."""
+    npt = Ys.shape[0]
+    nn = NX.shape[0]
+    N = 6 * nn + 6
+    L = 32
+    M = 13 * npt  # per pin and point: the point, then +h and -h along each unknown
+    ends = np.empty((nn, M, 18))
+    s = np.empty((18, L))
+    k1 = np.empty((18, L))
+    k2 = np.empty((18, L))
+    k3 = np.empty((18, L))
+    k4 = np.empty((18, L))
+    tw = np.empty((18, L))
+    best = np.empty(L)
+    a = np.empty(6)
+    sv = np.empty(18)
+    Rw = np.empty((3, 3))
+    for k in range(nn):
+        for c0 in range(0, M, L):
+            for l in range(L):
+                q = min(c0 + l, M - 1)  # the last chunk padded with copies
+                j = q % 13
+                for i in range(6):
+                    a[i] = Ys[q // 13, 6 * k + i]
+                if j > 0:
+                    a[(j - 1) // 2] += h if j % 2 == 1 else -h
+                _start(a, NX[k, 0], NX[k, 1], P, sv, Rw)
+                for i in range(18):
+                    s[i, l] = sv[i]
+            integrate_lanes(s, NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, k1, k2, k3, k4, tw, best)
+            for l in range(min(L, M - c0)):
+                for i in range(18):
+                    ends[k, c0 + l, i] = s[i, l]
+    E = np.empty((nn, 18))
+    rp = np.empty(N)
+    rm = np.empty(N)
+    yc = np.empty(6)
+    for p in range(npt):
+        for k in range(nn):
+            for i in range(18):
+                E[k, i] = ends[k, 13 * p, i]
+        for i in range(6):
+            yc[i] = Ys[p, 6 * nn + i]
+        for k in range(nn):
+            for j in range(6):
+                for i in range(18):
+                    E[k, i] = ends[k, 13 * p + 1 + 2 * j, i]
+                residual(E, yc, NX, P0, W, 1.0, P, rp)
+                for i in range(18):
+                    E[k, i] = ends[k, 13 * p + 2 + 2 * j, i]
+                residual(E, yc, NX, P0, W, 1.0, P, rm)
+                for i in range(N):
+                    Js[p, i, 6 * k + j] = (rp[i] - rm[i]) / (2.0 * h)
+            for i in range(18):
+                E[k, i] = ends[k, 13 * p, i]
+        for j in range(6):
+            yc[j] += h
+            residual(E, yc, NX, P0, W, 1.0, P, rp)
+            yc[j] -= 2.0 * h
+            residual(E, yc, NX, P0, W, 1.0, P, rm)
+            yc[j] += h
+            for i in range(N):
+                Js[p, i, 6 * nn + j] = (rp[i] - rm[i]) / (2.0 * h)
+
+
+@njit(cache=True)
+def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, H2, H2k, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol,
+                 maxit, lanes, out, status):
     """N wrenches, row m near the anchor wrench Wa[c], c = cell[m] (answer ya[c], end states Ea[c], exact inverse
-    tangent Ha[c] and, if Dk[c] >= 0, its derivatives D[Dk[c]] (6, n, n) along the six wrench components): each
-    starts from its anchor's predictor ya - H(Wa + dw/2) r(ya, W) (the secant's inverse tangent at the midpoint:
-    error O(|dw|^3)), then Broyden with H(W) = Ha + sum dw_d D_d. `lanes` solves run in lock-step (one vectorised
+    tangent Ha[c], if Dk[c] >= 0 its derivatives D[Dk[c]] (6, n, n) along the six wrench components and, if
+    H2k[c] >= 0, its second derivatives H2[H2k[c]] (21, n, n), the pairs d <= e in row order): H(W) = Ha + sum dw_d
+    D_d + sum_(d<=e) c_de dw_d dw_e H2_de / 2 (c_de = 1 on the diagonal, 2 off it). Each starts from its anchor's
+    predictor ya - (mean of H(W) along the path) r(ya, W) (the wrench enters the residual linearly: exact to the
+    order of H's Taylor series), then Broyden with H(W). `lanes` solves run in lock-step (one vectorised
     integration per pin and pass); a lane whose solve converged takes the next wrench, of any cell (one call for
     the whole batch: lanes idle only at its end). A solve that fails here gets status MAX_ITER or NOT_FINITE (the
     caller solves it again the robust way); never an unconverged answer."""
@@ -764,7 +836,10 @@ def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, NX, P0, SZ, SK, SKH, SKZ, SK
     tw = np.empty((18, L))
     best = np.empty(L)
     W = np.empty(6)
-    r0 = np.empty(N)
+    dw = np.empty(6)
+    bw = np.empty(6)
+    v0 = np.empty(N)
+    b6 = 6 * nn
     rnew = np.empty(N)
     dr = np.empty(N)
     Hd = np.empty(N)
@@ -786,27 +861,49 @@ def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, NX, P0, SZ, SK, SKH, SKZ, SK
                     W[i] = F[m, i]
                     W[3 + i] = M[m, i]
                 ca = cell[m]
-                residual(Ea[ca], ya[ca, 6 * nn:], NX, P0, W, 1.0, P, r0)
                 H = Hs[l]
                 A = Ha[ca]
-                dk = Dk[ca]
-                if dk >= 0:
-                    c0, c1, c2 = W[0] - Wa[ca, 0], W[1] - Wa[ca, 1], W[2] - Wa[ca, 2]
-                    c3, c4, c5 = W[3] - Wa[ca, 3], W[4] - Wa[ca, 4], W[5] - Wa[ca, 5]
-                    for i in range(N):
-                        for j in range(N):
-                            H[i, j] = (A[i, j] + c0 * D[dk, 0, i, j] + c1 * D[dk, 1, i, j] + c2 * D[dk, 2, i, j]
-                                       + c3 * D[dk, 3, i, j] + c4 * D[dk, 4, i, j] + c5 * D[dk, 5, i, j])
-                else:
-                    for i in range(N):
-                        for j in range(N):
-                            H[i, j] = A[i, j]
-                # ya - H(Wa + dw/2) r0, H linear in dw: ya - (Ha + H(W)) r0 / 2
+                for d in range(6):
+                    dw[d] = W[d] - Wa[ca, d]
+                    bw[d] = dw[d] / (P[FS] if d < 3 else P[MS])  # the residual's change: the clamp rows by bw
+                # H(W), and the predictor ya - Hm bw, Hm the mean of H along the path (first-order terms / 2,
+                # second-order / 3; components constant over the cell have dw = 0 and cost nothing)
                 for i in range(N):
                     v = 0.0
                     for j in range(N):
-                        v += (A[i, j] + H[i, j]) * r0[j]
-                    Y[l, i] = ya[ca, i] - 0.5 * v
+                        H[i, j] = A[i, j]
+                    for e in range(6):
+                        v += A[i, b6 + e] * bw[e]
+                    v0[i] = v
+                dk = Dk[ca]
+                if dk >= 0:
+                    for d in range(6):
+                        c = dw[d]
+                        if c != 0.0:
+                            for i in range(N):
+                                v = 0.0
+                                for j in range(N):
+                                    H[i, j] += c * D[dk, d, i, j]
+                                for e in range(6):
+                                    v += D[dk, d, i, b6 + e] * bw[e]
+                                v0[i] += 0.5 * c * v
+                d2 = H2k[ca]
+                if d2 >= 0:
+                    q = 0
+                    for d in range(6):
+                        for e in range(d, 6):
+                            c = (0.5 if d == e else 1.0) * dw[d] * dw[e]
+                            if c != 0.0:
+                                for i in range(N):
+                                    v = 0.0
+                                    for j in range(N):
+                                        H[i, j] += c * H2[d2, q, i, j]
+                                    for f in range(6):
+                                        v += H2[d2, q, i, b6 + f] * bw[f]
+                                    v0[i] += c / 3.0 * v
+                            q += 1
+                for i in range(N):
+                    Y[l, i] = ya[ca, i] - v0[i]
                 active += 1
         if active == 0:
             break
