@@ -579,8 +579,7 @@ class BatchResult:
     iterations: np.ndarray               # (N,)
 
 
-LANES = 32          # batch: solves integrated in lock-step (one vectorised integration per pin and pass)
-CELL_MIN = 200      # batch: fewest wrenches that get their own anchor (answer, tangent and its derivatives)
+CELL_MIN = 400      # batch: fewest wrenches that get their own anchor (answer, tangent and its derivatives)
 CELL_SPREAD = 0.1   # batch: a cell wider than this (scaled wrench, relative to its centre) is split
 ANCHOR_FD = 1e-7    # batch anchors: central-difference step of their tangents (scaled unknowns)
 ANCHOR_PATH = 1e-2  # batch anchors: points along the answer's path for dH/dW, relative to the scaled wrench
@@ -664,19 +663,28 @@ def _anchor(disc: Discretisation, Wa: np.ndarray, vary=np.ones(6, bool), near=No
     return Wa, ya, Ea, Ha, D, H2
 
 
-def _cells(Ws: np.ndarray, idx: np.ndarray, out: list):
-    """Split the rows idx of the scaled wrenches Ws at the median of their widest component until a cell is
-    narrow (CELL_SPREAD of its centre's size) or too small to split."""
-    w = Ws[idx]
-    ext = w.max(0) - w.min(0)
-    size = max(float(np.abs(w.mean(0)).max()), 1e-3)
-    if idx.size < 2 * CELL_MIN or ext.max() <= CELL_SPREAD * size:
-        out.append(idx)
-        return
-    h = idx.size // 2
-    part = np.argpartition(w[:, int(np.argmax(ext))], h)  # O(n), not a sort: 100,000 rows are split 8 levels deep
-    _cells(Ws, idx[part[:h]], out)
-    _cells(Ws, idx[part[h:]], out)
+def _cells(Ws: np.ndarray) -> list:
+    """Split the scaled wrenches Ws (N, 6) at the median of their widest component until a cell is narrow
+    (CELL_SPREAD of its centre's size) or too small to split: [(rows, wide)], neighbours next to each other; wide:
+    the cell stopped for its size, not its spread."""
+    WT = np.ascontiguousarray(Ws.T)  # (6, N), reordered in place: reductions and partitions along contiguous rows
+    order = np.arange(Ws.shape[0])
+    out = []
+    todo = [(0, Ws.shape[0])]
+    while todo:
+        a, b = todo.pop()
+        w = WT[:, a:b]
+        ext = w.max(1) - w.min(1)
+        wide = bool(ext.max() > CELL_SPREAD * max(float(np.abs(w.mean(1)).max()), 1e-3))
+        if b - a < 2 * CELL_MIN or not wide:
+            out.append((order[a:b], wide))
+            continue
+        h = (b - a) // 2
+        part = np.argpartition(w[int(np.argmax(ext))], h)  # O(n), not a sort: 100,000 rows are split 8 levels deep
+        WT[:, a:b] = w[:, part]
+        order[a:b] = order[a:b][part]
+        todo += [(a + h, b), (a, a + h)]
+    return out
 
 
 def _stack(mats):
@@ -693,7 +701,7 @@ def solve_batch(forces, moments=None, model: FrameModel | None = None, *, method
 
     method "auto": the wrenches are grouped into cells of nearby wrenches; each cell gets an anchor (the exact
     answer and tangent at its mean wrench) and every wrench of the cell starts from the anchor's predictor, in
-    lanes of LANES solves integrated together. "rest": each wrench from the unloaded state, one at a time (the
+    lanes of kernel.LANES solves integrated together. "rest": each wrench from the unloaded state, one at a time (the
     earlier method; the elastic-plastic pin always uses it). Both converge every row to the same tolerance."""
     model = FrameModel() if model is None else model
     if method not in ("auto", "rest"):
@@ -731,24 +739,22 @@ def solve_batch(forces, moments=None, model: FrameModel | None = None, *, method
     todo = np.arange(n)
     if method == "auto" and not model.plastic and n:
         Ws = np.hstack([F / P[k.FS], M / P[k.MS]])
-        cells = []
-        _cells(Ws, todo, cells)
+        cells = _cells(Ws)
         anchors = []
-        for idx in cells:  # neighbouring cells follow each other (the split's order): each anchor starts from the last
+        for idx, wide in cells:  # neighbouring cells follow each other: each anchor starts from the last
             w = np.hstack([F[idx], M[idx]])
             # second derivatives where the cell is wide (it stopped splitting for its size, not its spread): there
             # they save a quasi-Newton pass per row; on a narrow cell the first-order tangent already converges in one
-            second = bool(np.ptp(Ws[idx], 0).max() > CELL_SPREAD * max(float(np.abs(Ws[idx].mean(0)).max()), 1e-3))
-            anchors.append(_anchor(disc, w.mean(0), w.min(0) < w.max(0), anchors[-1] if anchors else None, second)
+            anchors.append(_anchor(disc, w.mean(0), w.min(0) < w.max(0), anchors[-1] if anchors else None, wide)
                            if idx.size >= CELL_MIN else _anchor(disc, np.zeros(6)))
         D, Dk = _stack([a[4] for a in anchors])  # anchors with tangent derivatives
         H2, H2k = _stack([a[5] for a in anchors])
-        rows = np.concatenate(cells)
-        cell = np.repeat(np.arange(len(cells)), [idx.size for idx in cells])
+        rows = np.concatenate([idx for idx, _ in cells])
+        cell = np.repeat(np.arange(len(cells)), [idx.size for idx, _ in cells])
         o = np.empty((n, 7))
         s = np.zeros((n, 2), np.int64)
         k.batch_anchor(F[rows], M[rows], cell, *(np.array([a[i] for a in anchors]) for i in range(4)), D, Dk, H2, H2k,
-                       *G[:9], C, model.free_length_mm, tol[rows], BROYDEN_MAXIT, LANES, o, s)
+                       *G[:9], C, model.free_length_mm, tol[rows], BROYDEN_MAXIT, o, s)
         out[rows] = o
         status[rows] = s
         todo = np.flatnonzero(status[:, 1] != k.OK)  # solved again the robust way below
