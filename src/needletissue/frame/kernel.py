@@ -744,11 +744,12 @@ def integrate_lanes(s, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, X, best):
 
 
 @njit(cache=True)
-def lane_jacobians(Ys, W, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, h, Js):
-    """Central-difference Jacobians (step h) of the residual at the points Ys (npt, N) into Js (npt, N, N); every
-    pin integration (each point and its +-h perturbations of the pin's 6 unknowns) runs in lanes.
-    Central, not forward: the shooting residual is so curved in the tip unknowns that a forward difference's
-    truncation error (~1 % of the inverse tangent at step 1e-7) limits the batch's predictor, not its order."""
+def lane_tangents(Ys, W, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, h, Hs):
+    """Inverse tangents at the points Ys (npt, N) into Hs (npt, N, N): the Jacobians by central differences (step
+    h), every pin integration (each point and its +-h perturbations of the pin's 6 unknowns) in lanes. Central, not
+    forward: the shooting residual is so curved in the tip unknowns that a forward difference's truncation error
+    (~1 % of the inverse tangent at step 1e-7) limits the batch's predictor, not its order. A singular tangent
+    raises LinAlgError."""
     npt = Ys.shape[0]
     nn = NX.shape[0]
     N = 6 * nn + 6
@@ -778,6 +779,7 @@ def lane_jacobians(Ys, W, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, h, Js):
                 for i in range(18):
                     ends[k, c0 + l, i] = s[i, l]
     E = np.empty((nn, 18))
+    J = np.empty((N, N))
     rp = np.empty(N)
     rm = np.empty(N)
     yc = np.empty(6)
@@ -796,7 +798,7 @@ def lane_jacobians(Ys, W, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, h, Js):
                     E[k, i] = ends[k, 13 * p + 2 + 2 * j, i]
                 residual(E, yc, NX, P0, W, 1.0, P, rm)
                 for i in range(N):
-                    Js[p, i, 6 * k + j] = (rp[i] - rm[i]) / (2.0 * h)
+                    J[i, 6 * k + j] = (rp[i] - rm[i]) / (2.0 * h)
             for i in range(18):
                 E[k, i] = ends[k, 13 * p, i]
         for j in range(6):
@@ -806,7 +808,21 @@ def lane_jacobians(Ys, W, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, h, Js):
             residual(E, yc, NX, P0, W, 1.0, P, rm)
             yc[j] += h
             for i in range(N):
-                Js[p, i, 6 * nn + j] = (rp[i] - rm[i]) / (2.0 * h)
+                J[i, 6 * nn + j] = (rp[i] - rm[i]) / (2.0 * h)
+        Hs[p] = np.linalg.inv(J)
+
+
+@njit(cache=True, inline="always")
+def _add_term(H, v0, T, c, mean, b6, bw):
+    """H += c T and v0 += mean c T[:, b6:b6 + 6] bw: one term of H(W)'s Taylor series and of its path mean's
+    product with the residual's change (nonzero in the clamp rows b6.. only)."""
+    for i in range(H.shape[0]):
+        v = 0.0
+        for j in range(H.shape[1]):
+            H[i, j] += c * T[i, j]
+        for e in range(6):
+            v += T[i, b6 + e] * bw[e]
+        v0[i] += mean * c * v
 
 
 @njit(cache=True)
@@ -870,24 +886,15 @@ def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, H2, H2k, NX, P0, SZ, SK, SKH
                 # H(W), and the predictor ya - Hm bw, Hm the mean of H along the path (first-order terms / 2,
                 # second-order / 3; components constant over the cell have dw = 0 and cost nothing)
                 for i in range(N):
-                    v = 0.0
                     for j in range(N):
-                        H[i, j] = A[i, j]
-                    for e in range(6):
-                        v += A[i, b6 + e] * bw[e]
-                    v0[i] = v
+                        H[i, j] = 0.0
+                    v0[i] = 0.0
+                _add_term(H, v0, A, 1.0, 1.0, b6, bw)
                 dk = Dk[ca]
                 if dk >= 0:
                     for d in range(6):
-                        c = dw[d]
-                        if c != 0.0:
-                            for i in range(N):
-                                v = 0.0
-                                for j in range(N):
-                                    H[i, j] += c * D[dk, d, i, j]
-                                for e in range(6):
-                                    v += D[dk, d, i, b6 + e] * bw[e]
-                                v0[i] += 0.5 * c * v
+                        if dw[d] != 0.0:
+                            _add_term(H, v0, D[dk, d], dw[d], 0.5, b6, bw)
                 d2 = H2k[ca]
                 if d2 >= 0:
                     q = 0
@@ -895,13 +902,7 @@ def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, H2, H2k, NX, P0, SZ, SK, SKH
                         for e in range(d, 6):
                             c = (0.5 if d == e else 1.0) * dw[d] * dw[e]
                             if c != 0.0:
-                                for i in range(N):
-                                    v = 0.0
-                                    for j in range(N):
-                                        H[i, j] += c * H2[d2, q, i, j]
-                                    for f in range(6):
-                                        v += H2[d2, q, i, b6 + f] * bw[f]
-                                    v0[i] += c / 3.0 * v
+                                _add_term(H, v0, H2[d2, q], c, 1.0 / 3.0, b6, bw)
                             q += 1
                 for i in range(N):
                     Y[l, i] = ya[ca, i] - v0[i]

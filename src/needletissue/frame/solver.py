@@ -579,7 +579,7 @@ class BatchResult:
     iterations: np.ndarray               # (N,)
 
 
-CELL_MIN = 400      # batch: fewest wrenches that get their own anchor (answer, tangent and its derivatives)
+CELL_MIN = 600      # batch: fewest wrenches that get their own anchor (answer, tangent and its derivatives)
 CELL_SPREAD = 0.1   # batch: a cell wider than this (scaled wrench, relative to its centre) is split
 ANCHOR_FD = 1e-7    # batch anchors: central-difference step of their tangents (scaled unknowns)
 ANCHOR_PATH = 1e-2  # batch anchors: points along the answer's path for dH/dW, relative to the scaled wrench
@@ -620,9 +620,9 @@ def _anchor(disc: Discretisation, Wa: np.ndarray, vary=np.ones(6, bool), near=No
             return rest
 
     def tangents(Ys):  # exact inverse tangents at the points Ys (central differences, in lanes)
-        Js = np.empty((len(Ys), N, N))
-        k.lane_jacobians(np.ascontiguousarray(Ys), Wa, disc.NX, disc.P0, *G, ANCHOR_FD, Js)
-        return np.linalg.inv(Js)
+        Hs = np.empty((len(Ys), N, N))
+        k.lane_tangents(np.ascontiguousarray(Ys), Wa, disc.NX, disc.P0, *G, ANCHOR_FD, Hs)
+        return Hs
 
     try:
         Ha = tangents(ya[None])[0]
