@@ -579,7 +579,8 @@ class BatchResult:
     iterations: np.ndarray               # (N,)
 
 
-CELL_MIN = 600      # batch: fewest wrenches that get their own anchor (answer, tangent and its derivatives)
+CELL_MIN = 600      # batch: a cell of fewer than 2 CELL_MIN wrenches is not split (an anchor costs ~100 row solves)
+ANCHOR_MIN = 200    # batch: fewest wrenches that get their own anchor (answer, tangent and its derivatives)
 CELL_SPREAD = 0.1   # batch: a cell wider than this (scaled wrench, relative to its centre) is split
 ANCHOR_FD = 1e-7    # batch anchors: central-difference step of their tangents (scaled unknowns)
 ANCHOR_PATH = 1e-2  # batch anchors: points along the answer's path for dH/dW, relative to the scaled wrench
@@ -746,7 +747,7 @@ def solve_batch(forces, moments=None, model: FrameModel | None = None, *, method
             # second derivatives where the cell is wide (it stopped splitting for its size, not its spread): there
             # they save a quasi-Newton pass per row; on a narrow cell the first-order tangent already converges in one
             anchors.append(_anchor(disc, w.mean(0), w.min(0) < w.max(0), anchors[-1] if anchors else None, wide)
-                           if idx.size >= CELL_MIN else _anchor(disc, np.zeros(6)))
+                           if idx.size >= ANCHOR_MIN else _anchor(disc, np.zeros(6)))
         D, Dk = _stack([a[4] for a in anchors])  # anchors with tangent derivatives
         H2, H2k = _stack([a[5] for a in anchors])
         rows = np.concatenate([idx for idx, _ in cells])
