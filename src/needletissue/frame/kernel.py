@@ -825,7 +825,7 @@ def _add_term(H, v0, T, c, mean, b6, bw):
         v0[i] += mean * c * v
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"reassoc", "contract", "arcp", "nsz"})  # vectorised dot products; NaN/inf checks kept
 def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, H2, H2k, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol,
                  maxit, out, status):
     """N wrenches, row m near the anchor wrench Wa[c], c = cell[m] (answer ya[c], end states Ea[c], exact inverse
@@ -959,10 +959,11 @@ def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, H2, H2k, NX, P0, SZ, SK, SKH
                     Hd[i] = v
                     den += S[l, i] * v
                 for j in range(N):
-                    v = 0.0
-                    for i in range(N):
-                        v += S[l, i] * H[i, j]
-                    sH[j] = v
+                    sH[j] = 0.0
+                for i in range(N):  # s^T H row by row: the inner loop runs along H's rows (vectorises)
+                    v = S[l, i]
+                    for j in range(N):
+                        sH[j] += v * H[i, j]
                 if den != 0.0:
                     for i in range(N):
                         c = (S[l, i] - Hd[i]) / den
