@@ -288,11 +288,16 @@ def residual(E, yc, NX, P0, W, lam, P, res):
     Rigid clamp: pin k's end must be at P0 + c + Q (X_k - P0) with the rotation Q. Elastic clamp: at its
     attachment's deflected pose, P0 + c + Q (X_k - P0 + du_k) and Q exp(dtheta_k), (du_k, dtheta_k) the clamp's
     compliance times the pins' end wrenches in the clamp's axes (_clamp_deflection)."""
+    _residual(E, yc, NX, P0, W, lam, P, res, np.empty((3, 3)), np.empty((NX.shape[0], 6)))
+
+
+@njit(cache=True)
+def _residual(E, yc, NX, P0, W, lam, P, res, Q, D):
+    """residual() with its work arrays Q (3, 3) and D (needles, 6) passed in: the batch's lanes call it every pass,
+    and two allocations were about half of its ~0.3 us."""
     nn = NX.shape[0]
-    Q = np.empty((3, 3))
     expm(yc[3:6], Q)
     elastic = P[ELASTIC] > 0.0
-    D = np.zeros((nn if elastic else 1, 6))
     if elastic:
         _clamp_deflection(E, Q, P, D)
     c0 = yc[0] * P[LS]
@@ -855,6 +860,8 @@ def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, H2, H2k, NX, P0, SZ, SK, SKH
     W = np.empty(6)
     dw = np.empty(6)
     bw = np.empty(6)
+    Qw = np.empty((3, 3))
+    Dw = np.empty((nn, 6))
     v0 = np.empty(N)
     b6 = 6 * nn
     rnew = np.empty(N)
@@ -929,7 +936,7 @@ def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, H2, H2k, NX, P0, SZ, SK, SKH
             for i in range(3):
                 W[i] = F[m, i]
                 W[3 + i] = M[m, i]
-            residual(El[l], Y[l, 6 * nn:], NX, P0, W, 1.0, P, rnew)
+            _residual(El[l], Y[l, 6 * nn:], NX, P0, W, 1.0, P, rnew, Qw, Dw)
             rn = _norm(rnew)
             it = IT[l]
             code = -1
