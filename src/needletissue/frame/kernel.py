@@ -50,6 +50,8 @@ _FD = 1e-7
 _FD_NEWTON = 1e-9
 _MAXIT = 25
 MAX_STEPS = 200   # load steps in one solve_path: beyond this it reports CUTBACK instead of creeping on
+LANES = 32        # the batch's solves integrated in lock-step (one vectorised integration per pin and pass)
+LANES_Q = 18 * LANES
 
 
 @njit(cache=True)
@@ -286,11 +288,16 @@ def residual(E, yc, NX, P0, W, lam, P, res):
     Rigid clamp: pin k's end must be at P0 + c + Q (X_k - P0) with the rotation Q. Elastic clamp: at its
     attachment's deflected pose, P0 + c + Q (X_k - P0 + du_k) and Q exp(dtheta_k), (du_k, dtheta_k) the clamp's
     compliance times the pins' end wrenches in the clamp's axes (_clamp_deflection)."""
+    _residual(E, yc, NX, P0, W, lam, P, res, np.empty((3, 3)), np.empty((NX.shape[0], 6)))
+
+
+@njit(cache=True)
+def _residual(E, yc, NX, P0, W, lam, P, res, Q, D):
+    """residual() with its work arrays Q (3, 3) and D (needles, 6) passed in: the batch's lanes call it every pass,
+    and two allocations were about half of its ~0.3 us."""
     nn = NX.shape[0]
-    Q = np.empty((3, 3))
     expm(yc[3:6], Q)
     elastic = P[ELASTIC] > 0.0
-    D = np.zeros((nn if elastic else 1, 6))
     if elastic:
         _clamp_deflection(E, Q, P, D)
     c0 = yc[0] * P[LS]
@@ -637,19 +644,22 @@ def pose_solve(y, H, NX, P0, W, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, ou
 
 
 @njit(cache=True, fastmath=True, inline="always")
-def _rhs_lanes(z, s, x0, y0, cl, ct, kz, kt, kr, ds, iKGA, iEA, iEI, iGJ, shear):
-    """_rhs for lanes of states s (18, lanes), elastic section only, branch-free (the segment's kind is in the
+def _rhs_lanes(z, X, si, di, x0, y0, cl, ct, kz, kt, kr, iKGA, iEA, iEI, iGJ, shear):
+    """_rhs for LANES states, elastic section only: region si of the flat work buffer X (LANES_Q entries, row i of
+    the state at i * LANES) in, the derivative into region di. Branch-free (the segment's kind is in the
     coefficients: lateral cl + ct |u|^2, axial kz, torsion kt, rocking kr) so the lane loop vectorises."""
-    for l in range(s.shape[1]):
-        n0 = s[12, l]
-        n1 = s[13, l]
-        n2 = s[14, l]
-        m0 = s[15, l]
-        m1 = s[16, l]
-        m2 = s[17, l]
-        R00, R01, R02 = s[3, l], s[4, l], s[5, l]
-        R10, R11, R12 = s[6, l], s[7, l], s[8, l]
-        R20, R21, R22 = s[9, l], s[10, l], s[11, l]
+    a = si * LANES_Q
+    o = di * LANES_Q
+    for l in range(LANES):
+        n0 = X[a + 12 * LANES + l]
+        n1 = X[a + 13 * LANES + l]
+        n2 = X[a + 14 * LANES + l]
+        m0 = X[a + 15 * LANES + l]
+        m1 = X[a + 16 * LANES + l]
+        m2 = X[a + 17 * LANES + l]
+        R00, R01, R02 = X[a + 3 * LANES + l], X[a + 4 * LANES + l], X[a + 5 * LANES + l]
+        R10, R11, R12 = X[a + 6 * LANES + l], X[a + 7 * LANES + l], X[a + 8 * LANES + l]
+        R20, R21, R22 = X[a + 9 * LANES + l], X[a + 10 * LANES + l], X[a + 11 * LANES + l]
         nl0 = R00 * n0 + R10 * n1 + R20 * n2
         nl1 = R01 * n0 + R11 * n1 + R21 * n2
         nl2 = R02 * n0 + R12 * n1 + R22 * n2
@@ -662,41 +672,46 @@ def _rhs_lanes(z, s, x0, y0, cl, ct, kz, kt, kr, ds, iKGA, iEA, iEI, iGJ, shear)
         t0 = R00 * g0 + R01 * g1 + R02 * g2
         t1 = R10 * g0 + R11 * g1 + R12 * g2
         t2 = R20 * g0 + R21 * g1 + R22 * g2
-        ds[0, l] = t0
-        ds[1, l] = t1
-        ds[2, l] = t2
-        ds[3, l] = R01 * k2 - R02 * k1
-        ds[4, l] = -R00 * k2 + R02 * k0
-        ds[5, l] = R00 * k1 - R01 * k0
-        ds[6, l] = R11 * k2 - R12 * k1
-        ds[7, l] = -R10 * k2 + R12 * k0
-        ds[8, l] = R10 * k1 - R11 * k0
-        ds[9, l] = R21 * k2 - R22 * k1
-        ds[10, l] = -R20 * k2 + R22 * k0
-        ds[11, l] = R20 * k1 - R21 * k0
-        ux = s[0, l] - x0
-        uy = s[1, l] - y0
+        X[o + 0 * LANES + l] = t0
+        X[o + 1 * LANES + l] = t1
+        X[o + 2 * LANES + l] = t2
+        X[o + 3 * LANES + l] = R01 * k2 - R02 * k1
+        X[o + 4 * LANES + l] = -R00 * k2 + R02 * k0
+        X[o + 5 * LANES + l] = R00 * k1 - R01 * k0
+        X[o + 6 * LANES + l] = R11 * k2 - R12 * k1
+        X[o + 7 * LANES + l] = -R10 * k2 + R12 * k0
+        X[o + 8 * LANES + l] = R10 * k1 - R11 * k0
+        X[o + 9 * LANES + l] = R21 * k2 - R22 * k1
+        X[o + 10 * LANES + l] = -R20 * k2 + R22 * k0
+        X[o + 11 * LANES + l] = R20 * k1 - R21 * k0
+        ux = X[a + l] - x0
+        uy = X[a + LANES + l] - y0
         w = cl + ct * (ux * ux + uy * uy)
-        ds[12, l] = w * ux
-        ds[13, l] = w * uy
-        ds[14, l] = kz * (s[2, l] - z)
-        ds[15, l] = -(t1 * n2 - t2 * n1) + kr * 0.5 * (R21 - R12)
-        ds[16, l] = -(t2 * n0 - t0 * n2) + kr * 0.5 * (R02 - R20)
-        ds[17, l] = -(t0 * n1 - t1 * n0) + kt * 0.5 * (R10 - R01)
+        X[o + 12 * LANES + l] = w * ux
+        X[o + 13 * LANES + l] = w * uy
+        X[o + 14 * LANES + l] = kz * (X[a + 2 * LANES + l] - z)
+        X[o + 15 * LANES + l] = -(t1 * n2 - t2 * n1) + kr * 0.5 * (R21 - R12)
+        X[o + 16 * LANES + l] = -(t2 * n0 - t0 * n2) + kr * 0.5 * (R02 - R20)
+        X[o + 17 * LANES + l] = -(t0 * n1 - t1 * n0) + kt * 0.5 * (R10 - R01)
 
 
 @njit(cache=True, fastmath=True)
-def integrate_lanes(s, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, k1, k2, k3, k4, t, best):
-    """integrate() for lanes of start states s (18, lanes), in place (end states), elastic section only;
-    best (lanes,): the largest |u| over the step boundaries. k1 .. t: work arrays like s."""
-    nl = s.shape[1]
+def integrate_lanes(s, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, X, best):
+    """integrate() for LANES start states s (18, LANES), in place (end states), elastic section only; best (LANES,):
+    the largest |u| over the step boundaries. X: work buffer (6 LANES_Q): the state, the stage's argument and the
+    four stages' derivatives as regions of one flat array with offsets fixed at compile time, so that LLVM can
+    tell they do not overlap and vectorises the lane loops (with six (18, L) arrays it could not: the right-hand
+    side ran scalar, 2.8 x slower per lane integration)."""
+    for i in range(18):
+        for l in range(LANES):
+            X[i * LANES + l] = s[i, l]
     iKGA = 1.0 / P[KGA]
     iEA = 1.0 / P[EA]
     iEI = 1.0 / P[EI]
     iGJ = 1.0 / P[GJ]
     shear = 1.0 if P[SHEAR] > 0.0 else 0.0
-    for l in range(nl):
-        best[l] = (s[0, l] - x0) ** 2 + (s[1, l] - y0) ** 2 + (s[2, l] - SZ[0]) ** 2
+    for l in range(LANES):
+        best[l] = (X[l] - x0) ** 2 + (X[LANES + l] - y0) ** 2 + (X[2 * LANES + l] - SZ[0]) ** 2
     for g in range(SK.shape[0]):
         za = SZ[g]
         nst = SN[g]
@@ -709,45 +724,128 @@ def integrate_lanes(s, x0, y0, SZ, SK, SKH, SKZ, SKT, SN, P, k1, k2, k3, k4, t, 
         kr = SKT[g, 1] if kind == 0 else 0.0
         for st in range(nst):
             z = za + st * h
-            _rhs_lanes(z, s, x0, y0, cl, ct, kz, kt, kr, k1, iKGA, iEA, iEI, iGJ, shear)
-            for i in range(18):
-                for l in range(nl):
-                    t[i, l] = s[i, l] + 0.5 * h * k1[i, l]
-            _rhs_lanes(z + 0.5 * h, t, x0, y0, cl, ct, kz, kt, kr, k2, iKGA, iEA, iEI, iGJ, shear)
-            for i in range(18):
-                for l in range(nl):
-                    t[i, l] = s[i, l] + 0.5 * h * k2[i, l]
-            _rhs_lanes(z + 0.5 * h, t, x0, y0, cl, ct, kz, kt, kr, k3, iKGA, iEA, iEI, iGJ, shear)
-            for i in range(18):
-                for l in range(nl):
-                    t[i, l] = s[i, l] + h * k3[i, l]
-            _rhs_lanes(z + h, t, x0, y0, cl, ct, kz, kt, kr, k4, iKGA, iEA, iEI, iGJ, shear)
-            for i in range(18):
-                for l in range(nl):
-                    s[i, l] += h / 6.0 * (k1[i, l] + 2.0 * k2[i, l] + 2.0 * k3[i, l] + k4[i, l])
+            _rhs_lanes(z, X, 0, 2, x0, y0, cl, ct, kz, kt, kr, iKGA, iEA, iEI, iGJ, shear)
+            for j in range(LANES_Q):
+                X[LANES_Q + j] = X[j] + 0.5 * h * X[2 * LANES_Q + j]
+            _rhs_lanes(z + 0.5 * h, X, 1, 3, x0, y0, cl, ct, kz, kt, kr, iKGA, iEA, iEI, iGJ, shear)
+            for j in range(LANES_Q):
+                X[LANES_Q + j] = X[j] + 0.5 * h * X[3 * LANES_Q + j]
+            _rhs_lanes(z + 0.5 * h, X, 1, 4, x0, y0, cl, ct, kz, kt, kr, iKGA, iEA, iEI, iGJ, shear)
+            for j in range(LANES_Q):
+                X[LANES_Q + j] = X[j] + h * X[4 * LANES_Q + j]
+            _rhs_lanes(z + h, X, 1, 5, x0, y0, cl, ct, kz, kt, kr, iKGA, iEA, iEI, iGJ, shear)
+            for j in range(LANES_Q):
+                X[j] += h / 6.0 * (X[2 * LANES_Q + j] + 2.0 * X[3 * LANES_Q + j] + 2.0 * X[4 * LANES_Q + j] + X[5 * LANES_Q + j])
             zz = z + h
-            for l in range(nl):
-                d = (s[0, l] - x0) ** 2 + (s[1, l] - y0) ** 2 + (s[2, l] - zz) ** 2
+            for l in range(LANES):
+                d = (X[l] - x0) ** 2 + (X[LANES + l] - y0) ** 2 + (X[2 * LANES + l] - zz) ** 2
                 if d > best[l]:
                     best[l] = d
-    for l in range(nl):
+    for l in range(LANES):
         best[l] = np.sqrt(best[l])
+    for i in range(18):
+        for l in range(LANES):
+            s[i, l] = X[i * LANES + l]
 
 
 @njit(cache=True)
-def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol, maxit,
-                 lanes, out, status):
+def lane_tangents(Ys, W, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, h, Hs):
+    """Inverse tangents at the points Ys (npt, N) into Hs (npt, N, N): the Jacobians by central differences (step
+    h), every pin integration (each point and its +-h perturbations of the pin's 6 unknowns) in lanes. Central, not
+    forward: the shooting residual is so curved in the tip unknowns that a forward difference's truncation error
+    (~1 % of the inverse tangent at step 1e-7) limits the batch's predictor, not its order. A singular tangent
+    raises LinAlgError."""
+    npt = Ys.shape[0]
+    nn = NX.shape[0]
+    N = 6 * nn + 6
+    L = LANES
+    M = 13 * npt  # per pin and point: the point, then +h and -h along each unknown
+    ends = np.empty((nn, M, 18))
+    s = np.empty((18, L))
+    X = np.empty(6 * LANES_Q)
+    best = np.empty(L)
+    a = np.empty(6)
+    sv = np.empty(18)
+    Rw = np.empty((3, 3))
+    for k in range(nn):
+        for c0 in range(0, M, L):
+            for l in range(L):
+                q = min(c0 + l, M - 1)  # the last chunk padded with copies
+                j = q % 13
+                for i in range(6):
+                    a[i] = Ys[q // 13, 6 * k + i]
+                if j > 0:
+                    a[(j - 1) // 2] += h if j % 2 == 1 else -h
+                _start(a, NX[k, 0], NX[k, 1], P, sv, Rw)
+                for i in range(18):
+                    s[i, l] = sv[i]
+            integrate_lanes(s, NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, X, best)
+            for l in range(min(L, M - c0)):
+                for i in range(18):
+                    ends[k, c0 + l, i] = s[i, l]
+    E = np.empty((nn, 18))
+    J = np.empty((N, N))
+    rp = np.empty(N)
+    rm = np.empty(N)
+    yc = np.empty(6)
+    for p in range(npt):
+        for k in range(nn):
+            for i in range(18):
+                E[k, i] = ends[k, 13 * p, i]
+        for i in range(6):
+            yc[i] = Ys[p, 6 * nn + i]
+        for k in range(nn):
+            for j in range(6):
+                for i in range(18):
+                    E[k, i] = ends[k, 13 * p + 1 + 2 * j, i]
+                residual(E, yc, NX, P0, W, 1.0, P, rp)
+                for i in range(18):
+                    E[k, i] = ends[k, 13 * p + 2 + 2 * j, i]
+                residual(E, yc, NX, P0, W, 1.0, P, rm)
+                for i in range(N):
+                    J[i, 6 * k + j] = (rp[i] - rm[i]) / (2.0 * h)
+            for i in range(18):
+                E[k, i] = ends[k, 13 * p, i]
+        for j in range(6):
+            yc[j] += h
+            residual(E, yc, NX, P0, W, 1.0, P, rp)
+            yc[j] -= 2.0 * h
+            residual(E, yc, NX, P0, W, 1.0, P, rm)
+            yc[j] += h
+            for i in range(N):
+                J[i, 6 * nn + j] = (rp[i] - rm[i]) / (2.0 * h)
+        Hs[p] = np.linalg.inv(J)
+
+
+@njit(cache=True, inline="always")
+def _add_term(H, v0, T, c, mean, b6, bw):
+    """H += c T and v0 += mean c T[:, b6:b6 + 6] bw: one term of H(W)'s Taylor series and of its path mean's
+    product with the residual's change (nonzero in the clamp rows b6.. only)."""
+    for i in range(H.shape[0]):
+        v = 0.0
+        for j in range(H.shape[1]):
+            H[i, j] += c * T[i, j]
+        for e in range(6):
+            v += T[i, b6 + e] * bw[e]
+        v0[i] += mean * c * v
+
+
+@njit(cache=True, fastmath={"reassoc", "contract", "arcp", "nsz"})  # vectorised dot products; NaN/inf checks kept
+def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, H2, H2k, NX, P0, SZ, SK, SKH, SKZ, SKT, SN, P, C, zc_top, tol,
+                 maxit, out, status):
     """N wrenches, row m near the anchor wrench Wa[c], c = cell[m] (answer ya[c], end states Ea[c], exact inverse
-    tangent Ha[c] and, if Dk[c] >= 0, its derivatives D[Dk[c]] (6, n, n) along the six wrench components): each
-    starts from its anchor's predictor ya - H(Wa + dw/2) r(ya, W) (the secant's inverse tangent at the midpoint:
-    error O(|dw|^3)), then Broyden with H(W) = Ha + sum dw_d D_d. `lanes` solves run in lock-step (one vectorised
+    tangent Ha[c], if Dk[c] >= 0 its derivatives D[Dk[c]] (6, n, n) along the six wrench components and, if
+    H2k[c] >= 0, its second derivatives H2[H2k[c]] (21, n, n), the pairs d <= e in row order): H(W) = Ha + sum dw_d
+    D_d + sum_(d<=e) c_de dw_d dw_e H2_de / 2 (c_de = 1 on the diagonal, 2 off it). Each starts from its anchor's
+    predictor ya - (mean of H(W) along the path) r(ya, W) (the wrench enters the residual linearly: exact to the
+    order of H's Taylor series), then Broyden with H(W). LANES solves run in lock-step (one vectorised
     integration per pin and pass); a lane whose solve converged takes the next wrench, of any cell (one call for
     the whole batch: lanes idle only at its end). A solve that fails here gets status MAX_ITER or NOT_FINITE (the
     caller solves it again the robust way); never an unconverged answer."""
     nn = NX.shape[0]
     N = 6 * nn + 6
     n = F.shape[0]
-    L = lanes
+    L = LANES
     Y = np.empty((L, N))
     Hs = np.empty((L, N, N))
     R = np.empty((L, N))
@@ -757,14 +855,15 @@ def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, NX, P0, SZ, SK, SKH, SKZ, SK
     MI = np.full(L, -1, np.int64)
     El = np.empty((L, nn, 19))
     st = np.empty((nn, 18, L))
-    k1 = np.empty((18, L))
-    k2 = np.empty((18, L))
-    k3 = np.empty((18, L))
-    k4 = np.empty((18, L))
-    tw = np.empty((18, L))
+    X = np.empty(6 * LANES_Q)
     best = np.empty(L)
     W = np.empty(6)
-    r0 = np.empty(N)
+    dw = np.empty(6)
+    bw = np.empty(6)
+    Qw = np.empty((3, 3))
+    Dw = np.empty((nn, 6))
+    v0 = np.empty(N)
+    b6 = 6 * nn
     rnew = np.empty(N)
     dr = np.empty(N)
     Hd = np.empty(N)
@@ -786,27 +885,34 @@ def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, NX, P0, SZ, SK, SKH, SKZ, SK
                     W[i] = F[m, i]
                     W[3 + i] = M[m, i]
                 ca = cell[m]
-                residual(Ea[ca], ya[ca, 6 * nn:], NX, P0, W, 1.0, P, r0)
                 H = Hs[l]
                 A = Ha[ca]
+                for d in range(6):
+                    dw[d] = W[d] - Wa[ca, d]
+                    bw[d] = dw[d] / (P[FS] if d < 3 else P[MS])  # the residual's change: the clamp rows by bw
+                # H(W), and the predictor ya - Hm bw, Hm the mean of H along the path (first-order terms / 2,
+                # second-order / 3; components constant over the cell have dw = 0 and cost nothing)
+                for i in range(N):
+                    for j in range(N):
+                        H[i, j] = 0.0
+                    v0[i] = 0.0
+                _add_term(H, v0, A, 1.0, 1.0, b6, bw)
                 dk = Dk[ca]
                 if dk >= 0:
-                    c0, c1, c2 = W[0] - Wa[ca, 0], W[1] - Wa[ca, 1], W[2] - Wa[ca, 2]
-                    c3, c4, c5 = W[3] - Wa[ca, 3], W[4] - Wa[ca, 4], W[5] - Wa[ca, 5]
-                    for i in range(N):
-                        for j in range(N):
-                            H[i, j] = (A[i, j] + c0 * D[dk, 0, i, j] + c1 * D[dk, 1, i, j] + c2 * D[dk, 2, i, j]
-                                       + c3 * D[dk, 3, i, j] + c4 * D[dk, 4, i, j] + c5 * D[dk, 5, i, j])
-                else:
-                    for i in range(N):
-                        for j in range(N):
-                            H[i, j] = A[i, j]
-                # ya - H(Wa + dw/2) r0, H linear in dw: ya - (Ha + H(W)) r0 / 2
+                    for d in range(6):
+                        if dw[d] != 0.0:
+                            _add_term(H, v0, D[dk, d], dw[d], 0.5, b6, bw)
+                d2 = H2k[ca]
+                if d2 >= 0:
+                    q = 0
+                    for d in range(6):
+                        for e in range(d, 6):
+                            c = (0.5 if d == e else 1.0) * dw[d] * dw[e]
+                            if c != 0.0:
+                                _add_term(H, v0, H2[d2, q], c, 1.0 / 3.0, b6, bw)
+                            q += 1
                 for i in range(N):
-                    v = 0.0
-                    for j in range(N):
-                        v += (A[i, j] + H[i, j]) * r0[j]
-                    Y[l, i] = ya[ca, i] - 0.5 * v
+                    Y[l, i] = ya[ca, i] - v0[i]
                 active += 1
         if active == 0:
             break
@@ -818,7 +924,7 @@ def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, NX, P0, SZ, SK, SKH, SKZ, SK
                 _start(a, NX[k, 0], NX[k, 1], P, sv, Rw)
                 for i in range(18):
                     st[k, i, l] = sv[i]
-            integrate_lanes(st[k], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, k1, k2, k3, k4, tw, best)
+            integrate_lanes(st[k], NX[k, 0], NX[k, 1], SZ, SK, SKH, SKZ, SKT, SN, P, X, best)
             for l in range(L):
                 for i in range(18):
                     El[l, k, i] = st[k, i, l]
@@ -830,7 +936,7 @@ def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, NX, P0, SZ, SK, SKH, SKZ, SK
             for i in range(3):
                 W[i] = F[m, i]
                 W[3 + i] = M[m, i]
-            residual(El[l], Y[l, 6 * nn:], NX, P0, W, 1.0, P, rnew)
+            _residual(El[l], Y[l, 6 * nn:], NX, P0, W, 1.0, P, rnew, Qw, Dw)
             rn = _norm(rnew)
             it = IT[l]
             code = -1
@@ -860,10 +966,11 @@ def batch_anchor(F, M, cell, Wa, ya, Ea, Ha, D, Dk, NX, P0, SZ, SK, SKH, SKZ, SK
                     Hd[i] = v
                     den += S[l, i] * v
                 for j in range(N):
-                    v = 0.0
-                    for i in range(N):
-                        v += S[l, i] * H[i, j]
-                    sH[j] = v
+                    sH[j] = 0.0
+                for i in range(N):  # s^T H row by row: the inner loop runs along H's rows (vectorises)
+                    v = S[l, i]
+                    for j in range(N):
+                        sH[j] += v * H[i, j]
                 if den != 0.0:
                     for i in range(N):
                         c = (S[l, i] - Hd[i]) / den

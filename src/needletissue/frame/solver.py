@@ -579,16 +579,19 @@ class BatchResult:
     iterations: np.ndarray               # (N,)
 
 
-LANES = 32          # batch: solves integrated in lock-step (one vectorised integration per pin and pass)
-CELL_MIN = 200      # batch: fewest wrenches that get their own anchor (answer, tangent and its derivatives)
+CELL_MIN = 600      # batch: a cell of fewer than 2 CELL_MIN wrenches is not split (an anchor costs ~100 row solves)
+ANCHOR_MIN = 200    # batch: fewest wrenches that get their own anchor (answer, tangent and its derivatives)
 CELL_SPREAD = 0.1   # batch: a cell wider than this (scaled wrench, relative to its centre) is split
+ANCHOR_FD = 1e-7    # batch anchors: central-difference step of their tangents (scaled unknowns)
+ANCHOR_PATH = 1e-2  # batch anchors: points along the answer's path for dH/dW, relative to the scaled wrench
 
 
-def _anchor(disc: Discretisation, Wa: np.ndarray, vary=np.ones(6, bool), near=None):
+def _anchor(disc: Discretisation, Wa: np.ndarray, vary=np.ones(6, bool), near=None, second=False):
     """(Wa, y, end states, exact inverse tangent, its derivatives (6, n, n) along the wrench components that
-    `vary` (the others zero, as all of them if a tangent is singular)) at the answer to Wa; the rest state (zero
-    wrench, H0, no derivatives) when Wa is zero or its solve fails. near: another anchor to start from (a
-    neighbouring cell's: a few quasi-Newton steps instead of ~20 from rest)."""
+    `vary` (the others zero, as all of them if a tangent is singular), with `second` its second derivatives
+    (21, n, n: the pairs d <= e in row order), else zeros) at the answer to Wa; the rest state (zero wrench, H0,
+    no derivatives) when Wa is zero or its solve fails. near: another anchor to start from (a neighbouring
+    cell's: a few quasi-Newton steps instead of ~20 from rest)."""
     k = _kernel()
     nn = disc.NX.shape[0]
     N = 6 * nn + 6
@@ -599,7 +602,7 @@ def _anchor(disc: Discretisation, Wa: np.ndarray, vary=np.ones(6, bool), near=No
         dummy = np.empty((1, 18))
         for q in range(nn):
             k.integrate(np.zeros(6), disc.NX[q, 0], disc.NX[q, 1], *G, E0[q], dummy, False)
-        rest = (np.zeros(6), np.zeros(N), E0, _inverse_tangent(disc), np.zeros((6, N, N)))
+        rest = (np.zeros(6), np.zeros(N), E0, _inverse_tangent(disc), np.zeros((6, N, N)), np.zeros((21, N, N)))
         object.__setattr__(disc, "rest", rest)
     if not np.any(Wa):
         return rest
@@ -616,42 +619,81 @@ def _anchor(disc: Discretisation, Wa: np.ndarray, vary=np.ones(6, bool), near=No
         Ea = np.empty((nn, 19))
         if k.broyden(ya, _inverse_tangent(disc).copy(), disc.NX, disc.P0, Wa, *G, tol, BROYDEN_MAXIT, Ea)[1] != k.OK:
             return rest
-    J = np.empty((N, N))
-    k.jacobian(ya, 1.0, disc.NX, disc.P0, Wa, *G, J)
+
+    def tangents(Ys):  # exact inverse tangents at the points Ys (central differences, in lanes)
+        Hs = np.empty((len(Ys), N, N))
+        k.lane_tangents(np.ascontiguousarray(Ys), Wa, disc.NX, disc.P0, *G, ANCHOR_FD, Hs)
+        return Hs
+
     try:
-        Ha = np.linalg.inv(J)
+        Ha = tangents(ya[None])[0]
     except np.linalg.LinAlgError:
         return rest
     D = np.zeros((6, N, N))
-    # dH/dW_d = -H (dJ/dW_d) H: the tangent at the answer moved along its first-order path y' = -Ha dr/dW_d
-    # (the wrench enters only the clamp's rows, dr/dW_d = e_d / scale), forward differences of 0.3 % of the
-    # wrench's scaled size: one Jacobian each, no solve (the error is O(step) in D: far below D's own effect)
+    H2 = np.zeros((21, N, N))
+    # In the scaled wrench w (W / the force or moment scale) the wrench enters only the clamp's rows, dr/dw_d = e_c
+    # (c = 6 n + d), so the answer's path is y' = -H e_c and y'' = -(dH/dw_d) e_c: tangents at points on it,
+    # ANCHOR_PATH of the wrench's scaled size away, give dH/dw (forward differences on the first-order path; with
+    # `second`, central ones on the second-order path, and the second derivatives, the mixed ones forward).
     P = disc.P
-    step = 3e-3 * max(float(np.abs(Wa[:3]).max() / P[k.FS]), float(np.abs(Wa[3:]).max() / P[k.MS]))
-    for d in np.flatnonzero(vary):  # a component constant over the cell multiplies its D by zero
-        sc = P[k.FS] if d < 3 else P[k.MS]
-        k.jacobian(ya - step * Ha[:, 6 * nn + d], 1.0, disc.NX, disc.P0, Wa, *G, J)
-        try:
-            D[d] = (np.linalg.inv(J) - Ha) / (step * sc)
-        except np.linalg.LinAlgError:
-            D[:] = 0.0
-            break
-    return Wa, ya, Ea, Ha, D
+    size = max(float(np.abs(Wa[:3]).max() / P[k.FS]), float(np.abs(Wa[3:]).max() / P[k.MS]))
+    h = ANCHOR_PATH * size
+    sc = np.repeat([P[k.FS], P[k.MS]], 3)
+    vd = np.flatnonzero(vary)  # a component constant over the cell multiplies its derivatives by zero
+    c = 6 * nn + vd
+    try:
+        D1 = (tangents(ya - h * Ha[:, c].T) - Ha) / h  # (len(vd), N, N), per unit scaled wrench
+        if not second:
+            D[vd] = D1 / sc[vd, None, None]
+            return Wa, ya, Ea, Ha, D, H2
+        pairs = [(i, j) for i in range(len(vd)) for j in range(i + 1, len(vd))]
+        U = np.vstack([np.eye(len(vd)), -np.eye(len(vd))] + [np.eye(len(vd))[i] + np.eye(len(vd))[j] for i, j in pairs])
+        # ya + h (-Ha e_c) u + h^2/2 (-dH/dw e_c)(u, u) for the directions u
+        Ys = ya - h * U @ Ha[:, c].T - 0.5 * h * h * np.einsum("pd,pe,dne->pn", U, U, D1[:, :, c])
+        Hs = tangents(Ys)
+    except np.linalg.LinAlgError:
+        return Wa, ya, Ea, Ha, D, H2
+    n = len(vd)
+    Hp, Hn = Hs[:n], Hs[n:2 * n]
+    D[vd] = (Hp - Hn) / (2 * h) / sc[vd, None, None]
+    q = {(d, e): i for i, (d, e) in enumerate((d, e) for d in range(6) for e in range(d, 6))}
+    for i, d in enumerate(vd):
+        H2[q[d, d]] = (Hp[i] - 2 * Ha + Hn[i]) / (h * sc[d]) ** 2
+    for p, (i, j) in enumerate(pairs):
+        H2[q[vd[i], vd[j]]] = (Hs[2 * n + p] - Hp[i] - Hp[j] + Ha) / (h * h * sc[vd[i]] * sc[vd[j]])
+    return Wa, ya, Ea, Ha, D, H2
 
 
-def _cells(Ws: np.ndarray, idx: np.ndarray, out: list):
-    """Split the rows idx of the scaled wrenches Ws at the median of their widest component until a cell is
-    narrow (CELL_SPREAD of its centre's size) or too small to split."""
-    w = Ws[idx]
-    ext = w.max(0) - w.min(0)
-    size = max(float(np.abs(w.mean(0)).max()), 1e-3)
-    if idx.size < 2 * CELL_MIN or ext.max() <= CELL_SPREAD * size:
-        out.append(idx)
-        return
-    h = idx.size // 2
-    part = np.argpartition(w[:, int(np.argmax(ext))], h)  # O(n), not a sort: 100,000 rows are split 8 levels deep
-    _cells(Ws, idx[part[:h]], out)
-    _cells(Ws, idx[part[h:]], out)
+def _cells(Ws: np.ndarray) -> list:
+    """Split the scaled wrenches Ws (N, 6) at the median of their widest component until a cell is narrow
+    (CELL_SPREAD of its centre's size) or too small to split: [(rows, wide)], neighbours next to each other; wide:
+    the cell stopped for its size, not its spread."""
+    WT = np.ascontiguousarray(Ws.T)  # (6, N), reordered in place: reductions and partitions along contiguous rows
+    order = np.arange(Ws.shape[0])
+    out = []
+    todo = [(0, Ws.shape[0])]
+    while todo:
+        a, b = todo.pop()
+        w = WT[:, a:b]
+        ext = w.max(1) - w.min(1)
+        wide = bool(ext.max() > CELL_SPREAD * max(float(np.abs(w.mean(1)).max()), 1e-3))
+        if b - a < 2 * CELL_MIN or not wide:
+            out.append((order[a:b], wide))
+            continue
+        h = (b - a) // 2
+        part = np.argpartition(w[int(np.argmax(ext))], h)  # O(n), not a sort: 100,000 rows are split 8 levels deep
+        WT[:, a:b] = w[:, part]
+        order[a:b] = order[a:b][part]
+        todo += [(a + h, b), (a, a + h)]
+    return out
+
+
+def _stack(mats):
+    """The nonzero arrays of mats stacked, and each one's index in the stack (-1: zero, not stored)."""
+    has = [i for i, a in enumerate(mats) if a.any()]
+    idx = np.full(len(mats), -1, np.int64)
+    idx[has] = np.arange(len(has))
+    return np.array([mats[i] for i in has] or [mats[0]]), idx
 
 
 def solve_batch(forces, moments=None, model: FrameModel | None = None, *, method: str = "auto") -> BatchResult:
@@ -660,7 +702,7 @@ def solve_batch(forces, moments=None, model: FrameModel | None = None, *, method
 
     method "auto": the wrenches are grouped into cells of nearby wrenches; each cell gets an anchor (the exact
     answer and tangent at its mean wrench) and every wrench of the cell starts from the anchor's predictor, in
-    lanes of LANES solves integrated together. "rest": each wrench from the unloaded state, one at a time (the
+    lanes of kernel.LANES solves integrated together. "rest": each wrench from the unloaded state, one at a time (the
     earlier method; the elastic-plastic pin always uses it). Both converge every row to the same tolerance."""
     model = FrameModel() if model is None else model
     if method not in ("auto", "rest"):
@@ -698,23 +740,22 @@ def solve_batch(forces, moments=None, model: FrameModel | None = None, *, method
     todo = np.arange(n)
     if method == "auto" and not model.plastic and n:
         Ws = np.hstack([F / P[k.FS], M / P[k.MS]])
-        cells = []
-        _cells(Ws, todo, cells)
+        cells = _cells(Ws)
         anchors = []
-        for idx in cells:  # neighbouring cells follow each other (the split's order): each anchor starts from the last
+        for idx, wide in cells:  # neighbouring cells follow each other: each anchor starts from the last
             w = np.hstack([F[idx], M[idx]])
-            anchors.append(_anchor(disc, w.mean(0), w.min(0) < w.max(0), anchors[-1] if anchors else None)
-                           if idx.size >= CELL_MIN else _anchor(disc, np.zeros(6)))
-        has = [i for i, a in enumerate(anchors) if a[4].any()]  # anchors with tangent derivatives
-        Dk = np.full(len(cells), -1, np.int64)
-        Dk[has] = np.arange(len(has))
-        D = np.array([anchors[i][4] for i in has] or [anchors[0][4]])
-        rows = np.concatenate(cells)
-        cell = np.repeat(np.arange(len(cells)), [idx.size for idx in cells])
+            # second derivatives where the cell is wide (it stopped splitting for its size, not its spread): there
+            # they save a quasi-Newton pass per row; on a narrow cell the first-order tangent already converges in one
+            anchors.append(_anchor(disc, w.mean(0), w.min(0) < w.max(0), anchors[-1] if anchors else None, wide)
+                           if idx.size >= ANCHOR_MIN else _anchor(disc, np.zeros(6)))
+        D, Dk = _stack([a[4] for a in anchors])  # anchors with tangent derivatives
+        H2, H2k = _stack([a[5] for a in anchors])
+        rows = np.concatenate([idx for idx, _ in cells])
+        cell = np.repeat(np.arange(len(cells)), [idx.size for idx, _ in cells])
         o = np.empty((n, 7))
         s = np.zeros((n, 2), np.int64)
-        k.batch_anchor(F[rows], M[rows], cell, *(np.array([a[i] for a in anchors]) for i in range(4)), D, Dk,
-                       *G[:9], C, model.free_length_mm, tol[rows], BROYDEN_MAXIT, LANES, o, s)
+        k.batch_anchor(F[rows], M[rows], cell, *(np.array([a[i] for a in anchors]) for i in range(4)), D, Dk, H2, H2k,
+                       *G[:9], C, model.free_length_mm, tol[rows], BROYDEN_MAXIT, o, s)
         out[rows] = o
         status[rows] = s
         todo = np.flatnonzero(status[:, 1] != k.OK)  # solved again the robust way below
