@@ -283,6 +283,7 @@ def _tetgen(points, faces, cfg, bound):
             plc=True, quality=True, minratio=ratio, mindihedral=dihedral,
             fixedvolume=bound is not None, maxvolume=-1.0 if bound is None else float(bound),
             regionattrib=True, optmaxdihedral=OPT_MAX_DIHEDRAL, opt_iterations=OPT_ITERATIONS,
+            smooth_cirterion=1 if TETGEN_SMOOTHING else 0, smooth_maxiter=TETGEN_SMOOTHING,
             quiet=True, nowarning=True)
     except RuntimeError as exc:
         raise InputError("mesh", f"TetGen failed on the smoothed tissue interfaces: {exc}") from None
@@ -818,6 +819,7 @@ def remove_slivers(points, cells, tag, target_deg: float = 12.0, max_shift: floa
 
 OPT_MAX_DIHEDRAL = 165.0   # TetGen -O: flip/smooth away tetrahedra with a dihedral angle above this
 OPT_ITERATIONS = 5
+TETGEN_SMOOTHING = 7        # TetGen's vertex smoothing passes after refinement (its default 7; 0: off)
 OPTIMIZE_THRESHOLD = 0.5   # gmsh gamma below which tetrahedra are optimised (0: no gmsh pass)
 OPTIMIZE_PASSES = 1         # a 2nd pass on the CT: 204 instead of 233 elements below 10 deg for ~2x the stage CPU
 OPTIMIZE_METHODS = ("",)    # gmsh optimisers per pass ("": gmsh's own tetrahedron optimiser)
@@ -832,8 +834,7 @@ def smooth_tet_mesh(seg, cfg):
     """TetMesh with smooth, conforming tissue interfaces (module docstring); cfg: tetmesh.MeshConfig."""
     import time
 
-    from needletissue.geometry.tetmesh import (TetMesh, _crop_and_coarsen, _grid_frame, _row_groups,
-                                               bone_surfaces_by_bone, face_pairs, interface_surfaces,
+    from needletissue.geometry.tetmesh import (TetMesh, _crop_and_coarsen, _grid_frame, bone_surfaces_by_bone, face_pairs, interface_surfaces,
                                                regular_tet_volume)
     from needletissue.imaging.segment import material_for
 
@@ -879,14 +880,12 @@ def smooth_tet_mesh(seg, cfg):
     cpu.append(time.process_time())
     v = signed_volume(nodes, cells)
     cells[v < 0] = cells[v < 0][:, [0, 2, 1, 3]]  # positive orientation (in grid coordinates)
-    inter, free, faces = face_pairs(cells, tag)
+    inter, free, faces, two = face_pairs(cells, tag, pairs=True)
     bnd = np.concatenate([inter, free])
     fixed = np.zeros(len(nodes), bool)
     fixed[np.unique(faces[bnd])] = True
     # the worst elements have all four nodes on interfaces (measured): let smooth-patch nodes slide
     n_c = len(cells)
-    order, inv_f, cnt = _row_groups(np.sort(faces, axis=1))     # order = argsort(inv_f, kind="stable")
-    two = order[cnt[inv_f[order]] == 2].reshape(-1, 2)
     partner = np.full(len(faces), -1)
     partner[two[:, 0]], partner[two[:, 1]] = two[:, 1], two[:, 0]
     ta = tag[bnd % n_c]
