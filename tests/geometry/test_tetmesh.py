@@ -99,6 +99,14 @@ def test_msh_has_named_physical_groups(boxes_mesh, tmp_path):
                               "gluteus_maximus": "muscle"}
 
 
+def test_vtu_round_trips_through_meshio(boxes_mesh, tmp_path):
+    _, mesh = boxes_mesh
+    m = meshio.read(mesh.write_vtu(tmp_path / "m.vtu"))
+    assert np.array_equal(m.points, mesh.points) and np.array_equal(m.cells_dict["tetra"], mesh.cells)
+    assert np.array_equal(m.cell_data["region"][0], mesh.region_ids())
+    assert not list(tmp_path.glob(".*"))                 # no temporary file left
+
+
 def test_crop_and_regions(boxes_mesh):
     seg, _ = boxes_mesh
     m = tet_mesh(seg, config=MeshConfig(size=2.0, regions=["cortical_bone", "gluteus_maximus"]))

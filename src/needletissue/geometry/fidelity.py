@@ -53,7 +53,7 @@ def mesh_fidelity(seg, mesh, config) -> MeshFidelity:
     """Measure `mesh` (a TetMesh from tet_mesh(seg, config=config)) against its label map."""
     import pyvista as pv
 
-    from needletissue.geometry.tetmesh import _crop_and_coarsen, _sub_image, tet_quality
+    from needletissue.geometry.tetmesh import _crop_and_coarsen, _row_groups, _sub_image, tet_quality
 
     arr, start, f, names = _crop_and_coarsen(seg, config)
     sub = _sub_image(seg, arr, start, f)
@@ -111,9 +111,7 @@ def mesh_fidelity(seg, mesh, config) -> MeshFidelity:
     faces = np.concatenate([mesh.cells[:, fl] for fl in loc])
     owner = np.tile(np.arange(len(mesh.cells)), 4)
     key = np.sort(faces, axis=1)
-    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
-    order = np.argsort(inv, kind="stable")
+    order, inv, cnt = _row_groups(key)                 # order = argsort(inv, kind="stable")
     pair = order[cnt[inv[order]] == 2].reshape(-1, 2)
     inter = pair[mtag[owner[pair[:, 0]]] != mtag[owner[pair[:, 1]]], 0]
     free = np.flatnonzero(cnt[inv] == 1)

