@@ -19,7 +19,8 @@ from needletissue.fem.result import FEResult, green_lagrange, principal_stretche
 # consistent (tests/fem/test_newton.py), so further corrections with the same factorisation converge
 # too, at a residual and a back-substitution each instead of a tangent assembly and a factorisation.
 SUBSTEPS = 8
-SUBSTEP_START = 1e-2        # first substep only if its correction is <= this x max |u|
+SUBSTEP_START = 1e-3        # first substep only if its correction is <= this x max |u| (1e-2 at the
+                            # tissue's K = 10 MPa: substeps far from the solution mislead Newton, bench.md)
 SUBSTEP_CONTRACTION = 0.8   # each further one only if <= this x the previous one (0.5: 14 iterations, not 11)
 
 
@@ -69,6 +70,27 @@ def _substep_plugin(fem, linear, dof1, nmax: int):
                 linear.release()  # no factor held during the next tangent assembly
 
     return _Substeps()
+
+
+def _pressure_plugin(fem, mixed):
+    """A FElupe plugin: the first tangent of a predicted increment with the mixed bodies' cell pressure
+    `p` (set per increment; None: FElupe's own). FElupe takes p = K (Jbar - 1) with Jbar the volume
+    linearised from the last state; at an extrapolated state its error, second order in the increment
+    (a linearly extrapolated rotation changes volume), times the tissue's K (8,571 mu0 for adipose) is a
+    pressure ~20x the equilibrium one, whose geometric term p d2J/dF2 makes the tangent indefinite:
+    Newton then inverts the tissue (docs/bench.md, "Predictor"). The residual does not depend on p
+    (constant per cell, it cancels), so the equilibrium is the same."""
+
+    class _Pressure(fem.Plugin):
+        p = None
+
+        def before_iteration(self, context, st):
+            if st.iteration == 0 and self.p is not None:
+                for b, p in zip(mixed, self.p):
+                    b.results.state.p[:] = p
+                    b.results.state.J[:] = 1 + p / b.bulk
+
+    return _Pressure()
 
 
 class _Bodies:
@@ -319,7 +341,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                    `items`, whose line-searched iterations converge more slowly near contact changes).
     results      : False skips the stress/stretch evaluation (e.g. in benchmarks).
     predictor    : start each increment from the linear extrapolation of the last converged one
-                   (fewer Newton iterations on smooth load paths; off after a cut-back).
+                   (fewer Newton iterations on smooth load paths; off after a cut-back); the mixed
+                   bodies' cell pressure in the first tangent is extrapolated likewise.
     linesearch   : backtracking line search in every Newton iteration (FElupe's LinesearchPlugin:
                    halve the step while det F <= 0 or the residual is non-finite, e.g. a contact
                    item's NaN for a step that passes a surface through another). Default: on when
@@ -391,8 +414,13 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
         # needle model at load factor 0.005); reject only inverted and non-finite trials
         plugins.insert(0, fem.LinesearchPlugin(admissible=True, residual=False, max_halvings=10,
                                                criteria=[lambda trial: trial.finite]))
+    mixed = [b for b in bodies if isinstance(b, fem.SolidBodyNearlyIncompressible)]
+    pressure = _pressure_plugin(fem, mixed)
+    plugins.insert(0, pressure)
     lam, nsteps, nit, ncut = 0.0, 0, 0, 0
     last_du, last_dl = None, 0.0  # last converged increment, for the predictor
+    last_p = [b.results.state.p.copy() for b in mixed]  # the mixed bodies' pressure there
+    last_dp = None
     newton_s = 0.0
     norms: list[list[float]] = []
     out = []
@@ -403,12 +431,15 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 rest = target - lam
                 dl = rest / np.ceil(rest / min(step, max_step) - 1e-9)
                 saved = [f.values.copy() for f in field.fields]
+                pressure.p = None
                 if predictor and last_du is not None:
                     for f, d in zip(field.fields, last_du):
                         f.values = f.values + (dl / last_dl) * d
+                    pressure.p = [p + (dl / last_dl) * d for p, d in zip(last_p, last_dp)]
                     if not all(i.admissible() for i in items if hasattr(i, "admissible")):
                         for f, v in zip(field.fields, saved):  # e.g. contact surfaces passed through
                             f.values = v.copy()
+                        pressure.p = None
                 stateful = [*bodies, *items]  # e.g. a frictional contact item's history
                 checkpoints = [b.checkpoint() if hasattr(b, "checkpoint") else None for b in stateful]
                 ext0 = loads.apply(model, lam + dl)
@@ -440,6 +471,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                     last_fun = res.fun  # residual at the converged state: reactions, no re-assembly
                     last_du = [f.values - v for f, v in zip(field.fields, saved)]
                     last_dl = dl
+                    p = [b.results.state.p.copy() for b in mixed]
+                    last_dp, last_p = [a - b for a, b in zip(p, last_p)], p
                     lam += dl
                     nsteps += 1
                     nit += int(res.iterations)

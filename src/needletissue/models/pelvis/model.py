@@ -342,7 +342,7 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
     bcs.append(SurfaceForce("gripper", total=tuple(fmax * fdir)))
     factors = [f / fmax for f in config.forces]
     fe = solve(model, bcs, load_factors=factors, solver=config.solver, progress=config.progress, items=items,
-               predictor=False)  # as the needle model: the predictor fails at the tissue's K (bench.md)
+               predictor=config.formulation == "mixed" and not items)  # as the needle model (bench.md)
     t_solve = time.perf_counter() - t0 - t_mesh - t_model
 
     qm = model.mesh
