@@ -314,8 +314,9 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     solver       : "auto" (by free dofs), "pardiso", "scipy" or "amg" (PyAMG-preconditioned CG).
     items        : extra FElupe items (e.g. a contact item) assembled with the bodies.
     initial_step : first increment of the load factor (default: the first requested factor; with
-                   extra `items` 1/20 of it: a frictional contact item's friction lags one increment,
-                   so the first increment is frictionless and should carry little load).
+                   extra `items` 1/20 of it: contact starts from the barrier's soft rest state, and
+                   with lag="step" friction lags one increment, so the first is frictionless; the
+                   needle model's contact run converges from 5 N in 7 iterations, docs/contact.md).
     min_step     : smallest increment after cut-backs (halving); below it ConvergenceError names the
                    load factor reached. max_step caps the increment (default: no cap).
     tol          : Newton tolerance on |residual of free dofs| / |reactions| (FElupe's norm).
