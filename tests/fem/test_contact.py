@@ -217,3 +217,56 @@ def test_material_groups_name_anatomical_regions():
     assert resolve_interfaces(box, "paper", groups=groups) == {"muscle-bone": 0.3}
     split, (itf,) = split_interfaces(box, ["muscle-bone"], groups)
     assert itf.regions_a == ("iliopsoas",) and itf.regions_b == ("hip_cortical",)
+
+
+def test_split_keeps_the_ring_bonded_to_a_third_region_tied():
+    """Where side a (lower) also touches a region it stays bonded to (side, bonded to lower and to
+    upper), the shared line is not split: upper stays tied to lower there, and the collision
+    surface keeps the two sides separate components (no side-b triangle on a shared node)."""
+    from needletissue.fem.contact import ContactSurface
+
+    boxes = {"lower": ((0, 0, -5), (10, 10, 0)), "upper": ((0, 0, 0), (5, 10, 10)), "side": ((5, 0, 0), (10, 10, 10))}
+    mesh = stacked_boxes(boxes, 2.5)
+    split, (itf,) = split_interfaces(mesh, ["lower-upper"])
+    ring = np.flatnonzero(np.isclose(mesh.points[:, 0], 5) & np.isclose(mesh.points[:, 2], 0))
+    assert len(ring) == 5
+    assert not np.isin(ring, itf.nodes_a).any()
+    upper = np.unique(split.cells[split.regions["upper"]])
+    assert np.isin(ring, upper).all()  # upper keeps the original ring nodes, shared with lower
+    # every other interface node is duplicated
+    assert len(split.points) == len(mesh.points) + 3 * 5 - 5
+    surface = ContactSurface.build(split.points, [itf], {"lower-upper": 0.3}, gap=0.09)
+    a = surface.faces[np.isin(surface.faces, np.flatnonzero(surface.side_a)).all(axis=1)]
+    b = surface.faces[~np.isin(surface.faces, np.flatnonzero(surface.side_a)).any(axis=1)]
+    assert len(a) + len(b) == len(surface.faces)
+    assert not np.isin(surface.vertices[b], ring).any()
+
+
+def test_implicit_friction_tangent_matches_finite_differences():
+    """lag="iteration": the Jacobian includes the derivatives of the normal forces and tangent bases
+    (ipctk force_jacobian by the lagged displacements), so it is the derivative of the residual:
+    central differences agree to 1e-6 (barrier active, block sliding)."""
+    m = _block_on_plane(2.5, MU, lag="iteration")
+    c = m.contact
+    X = m.field.region.mesh.points
+    rng = np.random.default_rng(0)
+    block = np.zeros(len(X), bool)
+    block[np.unique(m.mesh.cells[m.mesh.regions["block"]])] = True
+    u = np.zeros_like(X)
+    u[block] = [0.0, 0.0, -0.03]  # 0.03 mm into the barrier (gap 0.09 of dhat 0.1)
+    u[block, 0] += 0.002 + 0.01 * rng.random(block.sum())  # slip > eps_v: sliding
+    u[block, 1] += 0.003 * rng.random(block.sum())  # off the axes (ipctk's tangent basis branches there)
+    m.field[0].values[:] = u
+    c.assemble.vector(m.field)
+    K = c.assemble.matrix(m.field)
+    assert c.results.info["active_contacts"] > 100
+    du = np.zeros_like(u)
+    du[block] = rng.standard_normal((block.sum(), 3))
+    eps = 1e-7
+    r = []
+    for s in (1, -1):
+        m.field[0].values[:] = u + s * eps * du
+        r.append(c.assemble.vector(m.field).toarray().ravel())
+    fd = (r[0] - r[1]) / (2 * eps)
+    assert np.linalg.norm(K @ du.ravel() - fd) < 1e-6 * np.linalg.norm(fd)
+    assert abs(K - K.T).max() > 1e-3 * abs(K).max()  # friction makes it non-symmetric

@@ -19,6 +19,10 @@ from needletissue.fem.result import FEResult, green_lagrange, principal_stretche
 # consistent (tests/fem/test_newton.py), so further corrections with the same factorisation converge
 # too, at a residual and a back-substitution each instead of a tangent assembly and a factorisation.
 SUBSTEPS = 8
+# an increment that converged in at most this many Newton iterations lets the next one grow 1.5x;
+# contact runs (extra items) converge in 5-8 from their first increments on (docs/contact.md)
+GROW_ITERATIONS = 5
+GROW_ITERATIONS_ITEMS = 8
 SUBSTEP_START = 1e-3        # first substep only if its correction is <= this x max |u| (1e-2 at the
                             # tissue's K = 10 MPa: substeps far from the solution mislead Newton, bench.md)
 SUBSTEP_CONTRACTION = 0.8   # each further one only if <= this x the previous one (0.5: 14 iterations, not 11)
@@ -332,8 +336,9 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     solver       : "auto" (by free dofs), "pardiso", "scipy" or "amg" (PyAMG-preconditioned CG).
     items        : extra FElupe items (e.g. a contact item) assembled with the bodies.
     initial_step : first increment of the load factor (default: the first requested factor; with
-                   extra `items` 1/20 of it: a frictional contact item's friction lags one increment,
-                   so the first increment is frictionless and should carry little load).
+                   extra `items` 1/20 of it: contact starts from the barrier's soft rest state, and
+                   with lag="step" friction lags one increment, so the first is frictionless; the
+                   needle model's contact run converges from 5 N in 7 iterations, docs/contact.md).
     min_step     : smallest increment after cut-backs (halving); below it ConvergenceError names the
                    load factor reached. max_step caps the increment (default: no cap).
     tol          : Newton tolerance on |residual of free dofs| / |reactions| (FElupe's norm).
@@ -361,7 +366,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     counts once, for the first condition in `bcs` that constrains it, so the reactions of all
     conditions sum to minus the applied load.
 
-    The allowed increment grows 1.5x after an increment that converged in <= 5 iterations.
+    The allowed increment grows 1.5x after an increment that converged in <= 5 iterations (<= 8 with
+    extra `items`).
     """
     import felupe as fem
 
@@ -375,6 +381,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     max_step = np.inf if max_step is None else check_number("max_step", max_step, gt=0)
     step = min(step, max_step)
     maxiter = int(check_number("maxiter", (25 if items else 12) if maxiter is None else maxiter, ge=1))
+    grow = GROW_ITERATIONS_ITEMS if items else GROW_ITERATIONS
 
     t0 = time.perf_counter()
     loads = _Loads(model, bcs)
@@ -414,6 +421,11 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
         # needle model at load factor 0.005); reject only inverted and non-finite trials
         plugins.insert(0, fem.LinesearchPlugin(admissible=True, residual=False, max_halvings=10,
                                                criteria=[lambda trial: trial.finite]))
+        bounded = [i for i in items if hasattr(i, "step_bound")]  # contact: a CCD-bounded step first
+        if bounded:
+            from needletissue.fem.contact.item import CollisionFreeStep
+
+            plugins.insert(0, CollisionFreeStep(bounded))
     mixed = [b for b in bodies if isinstance(b, fem.SolidBodyNearlyIncompressible)]
     pressure = _pressure_plugin(fem, mixed)
     plugins.insert(0, pressure)
@@ -477,7 +489,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                     nsteps += 1
                     nit += int(res.iterations)
                     norms.append([float(x) for x in res.fnorms])
-                    if res.iterations <= 5:  # grow the allowed increment (dl may be a split of it)
+                    if res.iterations <= grow:  # grow the allowed increment (dl may be a split of it)
                         step = min(1.5 * max(step, dl), max_step)
                     else:
                         step = dl

@@ -16,9 +16,10 @@ Modelling choices (details and the reasons in docs/contact.md):
 * Area-weighted ("convergent") barrier: ``stiffness`` is a contact stiffness per area (MPa/mm), so the
   contact pressure does not depend on the mesh size.
 * Friction (Li et al. 2020, IPC): slip is the displacement since the last converged step; the normal
-  forces and tangent bases are lagged and refreshed at every residual evaluation (``lag="iteration"``,
-  the converged state is consistent: the friction uses the converged normal forces), or only once per
-  step (``lag="step"``: the previous converged state, cheaper Jacobian but one step behind).
+  forces and tangent bases are those of the current state (``lag="iteration"``, the default: the
+  Jacobian includes their derivatives, ipctk's ``force_jacobian`` by the lagged displacements, so
+  Newton stays quadratic and friction acts from the first increment), or those of the last converged
+  step (``lag="step"``: symmetric Jacobian, but one step behind and the first increment frictionless).
   Slip below ``eps_v`` (mm) is the smoothed static regime.
 * Every evaluation checks, by continuous collision detection from the last converged state, that the
   surfaces did not pass through each other; if they did, the residual is NaN, so a line search halves
@@ -32,6 +33,7 @@ from functools import lru_cache
 
 import ipctk
 import numpy as np
+from felupe import Plugin
 from felupe.mechanics import Assemble, Results
 from scipy.sparse import coo_matrix, csr_matrix
 
@@ -50,7 +52,9 @@ class ContactSettings:
     stiffness: barrier stiffness per area, MPa/mm (None: ``default_stiffness(youngs_modulus, dhat)``).
     youngs_modulus: modulus of the softer body, MPa, used only for the default stiffness.
     eps_v: slip below which friction is smoothed (static regime), mm per load step.
-    lag: "iteration" (refresh normal forces/tangent bases at every residual) or "step".
+    lag: "iteration" (friction from the current normal forces/tangent bases, consistent tangent:
+      friction from the first increment) or "step" (those of the last converged step: the first
+      increment is frictionless).
     gap_fraction: the coincident sides start gap_fraction * dhat apart for the barrier: < 1 keeps
       the barrier slightly active at rest (a tiny prestress, but a positive contact stiffness, so a
       body held only by contact is not singular at the first iteration).
@@ -60,7 +64,7 @@ class ContactSettings:
     stiffness: float | None = None
     youngs_modulus: float = 1.0
     eps_v: float = 1e-3
-    lag: str = "step"
+    lag: str = "iteration"
     gap_fraction: float = 0.9
 
     def __post_init__(self):
@@ -200,7 +204,12 @@ class ContactSurface:
             raise InputError("interfaces", "at most 62 contact interfaces")
         points = np.asarray(points, dtype=float)
         tri_a = [triangles(i.faces_a) for i in interfaces]
+        # side b's triangles at a node it shares with side a (not split: bonded there) would join the
+        # two bodies into one collision component; their other vertices stay in the neighbours
         tri_b = [triangles(i.faces_b) for i in interfaces]
+        keep = [~np.isin(tb, ta).any(axis=1) for ta, tb in zip(tri_a, tri_b)]
+        pair_a = [ta[k] for ta, k in zip(tri_a, keep)]  # side a's face of each kept side-b face
+        tri_b = [tb[k] for tb, k in zip(tri_b, keep)]
         vertices = np.unique(np.concatenate([t.ravel() for t in tri_a + tri_b]))
         local = np.full(len(points), -1)
         local[vertices] = np.arange(len(vertices))
@@ -209,7 +218,7 @@ class ContactSurface:
         mu = np.zeros(len(vertices))
         count = np.zeros(len(vertices))
         normal_b = np.zeros((len(vertices), 3))
-        for k, (itf, ta, tb) in enumerate(zip(interfaces, tri_a, tri_b)):
+        for k, (itf, ta, tb, pa) in enumerate(zip(interfaces, tri_a, tri_b, pair_a)):
             side_a[local[ta.ravel()]] |= 1 << k
             side_b[local[tb.ravel()]] |= 1 << k
             m = check_number(f"interfaces.{itf.name}", friction[itf.name], ge=0)
@@ -218,7 +227,7 @@ class ContactSurface:
                 mu[ids] += m
                 count[ids] += 1
             # area-weighted normal of side a, accumulated on the side-b vertices
-            p0, p1, p2 = (points[ta[:, j]] for j in range(3))
+            p0, p1, p2 = (points[pa[:, j]] for j in range(3))
             n = np.cross(p1 - p0, p2 - p0)
             for j in range(3):
                 np.add.at(normal_b, local[tb[:, j]], n)
@@ -226,6 +235,27 @@ class ContactSurface:
         offset = np.divide(normal_b, length, out=np.zeros_like(normal_b), where=length > 0) * gap
         faces = local[np.vstack(tri_a + tri_b)]
         return cls(vertices, faces, offset, side_a, side_b, mu / np.maximum(count, 1), list(interfaces))
+
+
+class CollisionFreeStep(Plugin):
+    """FElupe plugin (before the line search): shorten the Newton increment to `fraction` of the
+    largest step that passes no contact surface through another, instead of halving it and
+    assembling the residual at every rejected trial. `.alphas` keeps the fractions taken (< 1)."""
+
+    def __init__(self, items, fraction: float = 0.9):
+        self.items = [i for i in items if hasattr(i, "step_bound")]
+        self.fraction = fraction
+        self.alphas: list[float] = []
+
+    def after_linear_solve(self, context, st):
+        if not self.items:
+            return
+        u = st.x[0].values
+        du = np.asarray(st.dx)[:u.size].reshape(-1, 3)
+        alpha = min(i.step_bound(u[i.surface.vertices], du[i.surface.vertices]) for i in self.items)
+        if alpha < 1:
+            self.alphas.append(alpha)
+            st.dx = self.fraction * alpha * st.dx
 
 
 class _ContactResults(Results):
@@ -240,6 +270,7 @@ class _ContactResults(Results):
         # keep the slip reference and lag of the step just converged: its forces (contact_forces)
         self._item._accepted = (self.statevars.copy(), self._item._lagged)
         super().update_statevars()
+        self._item._base = None
         if self._item.settings.lag == "step":
             self._item.update_lag()
 
@@ -284,6 +315,7 @@ class FrictionalContact:
         self.results.info = {}
         self._lagged = None  # (vertices, collisions) of the last converged step for lag="step"
         self._accepted = None  # (slip reference, lag) with which the last converged step was solved
+        self._base = None  # displacements of the last tangent (the Newton iterate); None: the converged ones
         self._state = None
         self.assemble = Assemble(vector=self._vector, matrix=self._matrix)
 
@@ -306,6 +338,7 @@ class FrictionalContact:
 
     def restore(self, checkpoint):
         self.results.statevars = checkpoint["statevars"].copy()
+        self._base = None
         self._lagged = checkpoint["lagged"]
         self._accepted = checkpoint.get("accepted")
 
@@ -321,7 +354,9 @@ class FrictionalContact:
         u = self._u()
         u_prev = self.results.statevars
         V = self.positions(u)
-        V0 = self.positions(u_prev)
+        # CCD from the Newton iterate the trial is a step of: a path through the converged state
+        # could cross a surface the iterates went round
+        V0 = self.positions(u_prev if self._base is None else self._base)
         admissible = bool(np.all(np.isfinite(V))) and ipctk.is_step_collision_free(
             self.cmesh, V0, V, narrow_phase_ccd=self.ccd
         )
@@ -347,7 +382,11 @@ class FrictionalContact:
         """Gradient of barrier + friction potential on the collision-vertex dofs."""
         g = self.barrier.gradient(collisions, self.cmesh, V)
         if len(tangential) > 0:
-            g = g + self.friction.gradient(tangential, self.cmesh, slip)
+            if self.settings.lag == "iteration":  # normal forces and bases of the current state
+                g = g - self.friction.force(tangential, self.cmesh, self.rest,
+                                            np.asfortranarray(V - self.rest), slip, self.barrier)
+            else:
+                g = g + self.friction.gradient(tangential, self.cmesh, slip)
         return g
 
     def _vector(self, field=None, parallel=False):
@@ -371,10 +410,17 @@ class FrictionalContact:
         n = self._ndof_total()
         if not s["admissible"]:
             return csr_matrix((n, n))
+        self._base = s["u"].copy()
         # exact Hessians: a PSD projection (CLAMP) made Newton converge linearly (measured)
         psd = ipctk.PSDProjectionMethod.NONE
         H = self.barrier.hessian(self.collisions, self.cmesh, s["V"], psd)
-        if len(self.tangential) > 0:
+        if len(self.tangential) > 0 and self.settings.lag == "iteration":
+            # consistent: the friction force's derivative by the slip and by the state its normal
+            # forces, tangent bases and closest points are taken at (non-symmetric)
+            args = (self.tangential, self.cmesh, self.rest, np.asfortranarray(s["V"] - self.rest), s["slip"], self.barrier)
+            W = ipctk.FrictionPotential.DiffWRT
+            H = H - self.friction.force_jacobian(*args, W.VELOCITIES) - self.friction.force_jacobian(*args, W.LAGGED_DISPLACEMENTS)
+        elif len(self.tangential) > 0:
             H = H + self.friction.hessian(self.tangential, self.cmesh, s["slip"], psd)
         H = coo_matrix(H)
         K = csr_matrix((H.data, (self.dofs[H.row], self.dofs[H.col])), shape=(n, n))
@@ -387,6 +433,12 @@ class FrictionalContact:
         c = _collisions()
         c.build(self.cmesh, V, self.settings.dhat)
         self._lagged = (V, c)
+
+    def step_bound(self, u, du) -> float:
+        """Largest fraction of the step u -> u + du (collision-vertex displacements, mm) that passes no
+        surface through another (ipctk's collision-free step size, additive CCD)."""
+        return float(ipctk.compute_collision_free_stepsize(
+            self.cmesh, self.positions(u), self.positions(u + du), narrow_phase_ccd=self.ccd))
 
     # -- output ----------------------------------------------------------------------------------
     def contact_state(self, V=None) -> dict:

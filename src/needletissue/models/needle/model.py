@@ -209,10 +209,12 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     bcs.append(SurfaceForce("gripper", total=tuple(fmax * np.asarray(cfg.direction)),
                             moment=tuple(cfg.moment(fmax))))
     extra = tuple(items(model) if callable(items) else items)
-    # the linear predictor with mixed tissue only: at K = 10 MPa the displacement formulation's
-    # extrapolated start diverges; contact runs with it are not measured at this K (docs/bench.md)
+    # the linear predictor with mixed tissue (at K = 10 MPa the displacement formulation's extrapolated
+    # start diverges, docs/bench.md) and in contact runs (small increments that extrapolate well and
+    # start with the contact loaded, docs/contact.md)
     fe_results = solve(model, bcs, load_factors=[f / fmax for f in cfg.forces], solver=cfg.solver,
-                       items=extra, progress=cfg.progress, predictor=cfg.formulation == "mixed" and not extra)
+                       items=extra, progress=cfg.progress,
+                       predictor=cfg.formulation == "mixed" or bool(extra))
     t_solve = time.perf_counter() - t0 - t_mesh
 
     used = model.mesh                         # tetra10 when order=2
