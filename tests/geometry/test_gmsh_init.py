@@ -31,3 +31,26 @@ def test_sigterm_handler_survives_gmsh(case, tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip().endswith("handled") and "not handled" not in r.stdout, \
         (r.returncode, r.stdout[-300:], r.stderr[-300:])
+
+
+HELD = """
+import os, signal, sys
+sys.path.insert(0, {tmp!r})
+seen = []
+def handler(s, f):
+    seen.append(("signal", "selfkill" in sys.modules and sys.modules["selfkill"].done))
+signal.signal(signal.SIGTERM, handler)
+from needletissue.geometry.gmsh_init import import_holding_signals
+import_holding_signals("selfkill")
+print(seen, signal.getsignal(signal.SIGTERM) is handler)
+"""
+
+
+def test_signal_during_native_import_waits_for_the_import(tmp_path):
+    # SIGTERM raised inside VTK's extension-module initialisation (`import pyvista` in `mesh`) left a
+    # half-made module and the process died of SIGSEGV; the handler must run once the import is whole
+    (tmp_path / "selfkill.py").write_text("import os, signal\nos.kill(os.getpid(), signal.SIGTERM)\n"
+                                          "done = True\n")
+    r = subprocess.run([sys.executable, "-c", HELD.format(tmp=str(tmp_path))], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.split() == ["[('signal',", "True)]", "True"], (r.stdout, r.stderr)

@@ -53,3 +53,30 @@ def test_output_folder_that_cannot_be_made_exit_code_2(tmp_path, run_cli, phanto
     code, _, err = run_cli("segment", phantom_ct, "--out", blocker / "seg")
     assert code == 2 and str(blocker / "seg") in err and "cannot write" in err
 
+
+def test_mesh_stopped_leaves_no_output(phantom_ct, tmp_path, run_cli):
+    # `mesh` used to write surfaces/ straight into --out: SIGTERM mid-run left a folder of surfaces
+    # without mesh.msh or results.json, which looked like a (surface-only) result
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    seg_dir, out = tmp_path / "seg", tmp_path / "mesh"
+    assert run_cli("segment", phantom_ct, "--out", seg_dir)[0] == 0
+    p = subprocess.Popen([sys.executable, "-m", "needletissue.cli", "mesh", str(seg_dir), "--size", "4",
+                          "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env=dict(os.environ))
+    deadline = time.monotonic() + 60
+    while True:   # the surfaces child running: the command is past its checks and meshing
+        kids = subprocess.run(["pgrep", "-P", str(p.pid), "-a"], capture_output=True, text=True).stdout
+        if "geometry.child" in kids:
+            break
+        assert p.poll() is None and time.monotonic() < deadline, "the surfaces child never started"
+        time.sleep(0.05)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 143 and "stopped (SIGTERM)" in err, err
+    time.sleep(1)  # an orphaned child would write its surfaces now
+    assert not out.exists()

@@ -86,25 +86,36 @@ def register(app: typer.Typer, groups) -> None:
             box = tuple(_floats("crop", crop, 6))
         cfg = MeshConfig(size=size, regions=regions.split(",") if regions else None, crop=box,
                          method=method).validate()
+        # VTK's and TetGen's extension modules loaded whole before any work: a SIGTERM inside their
+        # initialisation left a half-made module and the process died of SIGSEGV
+        from needletissue.geometry.gmsh_init import import_holding_signals
+
+        import_holding_signals("vtk", "pyvista", "tetgen", "gmsh")
         # every file goes into a hidden folder inside out, moved into place at the end: a run stopped
         # or failed meanwhile leaves out as it was (and out is checked before minutes of meshing)
         with staged_output(out) as stage:
             t0 = time.perf_counter()
-            results, view = {}, None
+            results, view, surfaces_job = {}, None, None
             if surfaces_out:   # independent of the tetrahedral mesh: a child process makes them meanwhile
                 from needletissue.geometry.child import start_in_child
 
-                view = start_in_child("needletissue.geometry.surfaces:write_surfaces",
-                                      {"directory": str(directory), "regions": cfg.regions,
-                                       "out": str(stage / "surfaces")}, what="the tissue surfaces")
-            t1 = time.perf_counter()
-            mesh = tet_mesh(seg, config=cfg)
-            t2 = time.perf_counter()
-            mesh.write_msh(stage / "mesh.msh")
-            mesh.write_vtu(stage / "mesh.vtu")
-            t3 = time.perf_counter()
-            if surfaces_out:
-                view = view()
+                surfaces_job = start_in_child("needletissue.geometry.surfaces:write_surfaces",
+                                              {"directory": str(directory), "regions": cfg.regions,
+                                               "out": str(stage / "surfaces")}, what="the tissue surfaces")
+            try:
+                t1 = time.perf_counter()
+                mesh = tet_mesh(seg, config=cfg)
+                t2 = time.perf_counter()
+                mesh.write_msh(stage / "mesh.msh")
+                mesh.write_vtu(stage / "mesh.vtu")
+                t3 = time.perf_counter()
+                if surfaces_job is not None:
+                    view = surfaces_job()
+            except BaseException:  # the child stopped before the stage is removed: it writes into it
+                if surfaces_job is not None:
+                    surfaces_job.stop()
+                raise
+            if view is not None:
                 results["surfaces"] = view["reports"]
                 bad = [n for n, r in results["surfaces"].items() if not (r["watertight"] and r["manifold"])]
                 if bad:

@@ -24,11 +24,12 @@ class ChildCrash(NeedleTissueError):
     """The child process died without an answer (a signal, or an unexpected exception)."""
 
 
-def call_in_child(target: str, kwargs: dict, *, what: str) -> dict:
+def call_in_child(target: str, kwargs: dict, *, what: str, started=None) -> dict:
     """Call `module:function(**kwargs)` in a fresh interpreter and return its JSON-able dict.
 
     The package's own errors raised in the child are raised again here with their message and class
     (subclasses of NeedleTissueError that take one message); anything else becomes ChildCrash naming `what`.
+    `started(proc)` is called with the child's Popen as soon as it runs.
     """
     src = str(Path(__file__).resolve().parents[2])  # the directory holding `needletissue`
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (src, os.environ.get("PYTHONPATH")) if p),
@@ -38,6 +39,8 @@ def call_in_child(target: str, kwargs: dict, *, what: str) -> dict:
         request = json.dumps({"target": target, "kwargs": kwargs, "answer": str(answer)})
         proc = subprocess.Popen([sys.executable, "-c", "from needletissue.geometry.child import main; main()"],
                                 stdin=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
+        if started is not None:
+            started(proc)
         try:
             _, err = proc.communicate(request)
         except BaseException:  # interrupted: do not leave the child computing
@@ -58,15 +61,23 @@ def call_in_child(target: str, kwargs: dict, *, what: str) -> dict:
 
 
 def start_in_child(target: str, kwargs: dict, *, what: str):
-    """call_in_child from a background thread, so the caller computes meanwhile; returns a function that
-    waits for the child and returns its value (or raises its error)."""
+    """call_in_child from a background thread, so the caller computes meanwhile. Returns a function that
+    waits for the child and returns its value (or raises its error); its `stop()` kills the child and
+    waits for the thread: call it before removing anything the child writes into (a stopped run whose
+    child went on writing left a folder behind)."""
     import threading
 
-    box = {}
+    box, lock = {}, threading.Lock()
+
+    def started(proc):
+        with lock:
+            box["proc"] = proc
+            if box.get("stopped"):
+                proc.kill()
 
     def run():
         try:
-            box["value"] = call_in_child(target, kwargs, what=what)
+            box["value"] = call_in_child(target, kwargs, what=what, started=started)
         except BaseException as exc:   # re-raised in the caller's thread by result()
             box["error"] = exc
 
@@ -78,6 +89,16 @@ def start_in_child(target: str, kwargs: dict, *, what: str):
         if "error" in box:
             raise box["error"]
         return box["value"]
+
+    def stop():
+        with lock:
+            box["stopped"] = True
+            proc = box.get("proc")
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        th.join()
+
+    result.stop = stop
     return result
 
 

@@ -8,6 +8,8 @@ renderer went on and wrote its PNG after the command had gone) and half a result
 
 from __future__ import annotations
 
+import importlib
+import os
 import signal
 import threading
 
@@ -31,3 +33,29 @@ def rearm_signals() -> None:
         handler = signal.getsignal(s)
         if handler is not None:  # None: not set from Python, nothing to restore
             signal.signal(s, handler)
+
+
+def import_holding_signals(*modules: str) -> None:
+    """Import native extension modules with SIGINT/SIGTERM held until every import is done, then act on
+    a signal that came meanwhile. A Python handler that raised inside VTK's extension-module
+    initialisation (SIGTERM during `import pyvista`) left it half made; the process died of SIGSEGV."""
+    if threading.current_thread() is not threading.main_thread():
+        for m in modules:
+            importlib.import_module(m)
+        return
+    caught: list[int] = []
+    old = {s: signal.getsignal(s) for s in _SIGNALS}
+    for s in _SIGNALS:
+        signal.signal(s, lambda signum, frame: caught.append(signum))
+    try:
+        for m in modules:
+            importlib.import_module(m)
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+    if caught:
+        handler = old[caught[0]]
+        if callable(handler):
+            handler(caught[0], None)
+        elif handler != signal.SIG_IGN:
+            os.kill(os.getpid(), caught[0])  # the default action, now that the imports are whole

@@ -326,8 +326,12 @@ def gmsh_optimize(points: np.ndarray, cells: np.ndarray, tag: np.ndarray, thresh
             np.savez(inp, points=X, cells=cells[sel], tag=tag[sel], threshold=threshold)
             other = start_in_child("needletissue.geometry.smooth:_gmsh_optimize_file", {"inp": inp, "out": out},
                                    what="gmsh's optimiser")
-            first = _gmsh_optimize_group(X, cells[~sel], tag[~sel], groups[0], threshold)
-            other()
+            try:
+                first = _gmsh_optimize_group(X, cells[~sel], tag[~sel], groups[0], threshold)
+                other()
+            except BaseException:   # stopped: the child must not write into tmp while it is removed
+                other.stop()
+                raise
             with np.load(out) as z:
                 second = (z["nodes"], z["xyz"], z["cells"], z["tag"])
         parts = [first, second]
