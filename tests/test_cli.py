@@ -117,3 +117,11 @@ def test_fe_needle_stopped_while_meshing_leaves_nothing(tmp_path, sig, code, sai
     time.sleep(2)  # an orphan would mesh on and write the mesh now
     assert not [k for k in kids if os.path.exists(f"/proc/{k}")], "a child process outlived the command"
     assert list(tmp.iterdir()) == [] and not out.exists()
+
+
+def test_command_summaries_are_one_line_each():
+    # Typer's rich help kept the docstrings' source line breaks: summaries broke mid-sentence
+    r = _main("--help", env=dict(os.environ, COLUMNS="400", TERM="dumb"))
+    panel = [line for line in r.stdout.split("Commands")[1].splitlines() if line.startswith("\u2502")]
+    names = [line.split()[1] for line in panel]
+    assert r.returncode == 0 and len(panel) >= 10 and all(n.isidentifier() for n in names), panel

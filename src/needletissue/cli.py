@@ -53,6 +53,20 @@ for _module in _COMMAND_MODULES:
     _module.register(app, groups)
 
 
+def _one_line_summaries(*typers: typer.Typer) -> None:
+    """Command lists show each docstring's first paragraph as one line: Typer's rich help kept the
+    source's line breaks there, so the summaries broke mid-sentence."""
+    import inspect
+
+    for t in typers:
+        for info in t.registered_commands:
+            doc = info.help or inspect.getdoc(info.callback) or ""
+            info.short_help = info.short_help or " ".join(doc.split("\n\n")[0].split())
+
+
+_one_line_summaries(app, *vars(groups).values())
+
+
 def _click_exceptions():
     """Typer >= 0.2x runs on its own copy of click; older ones on click itself."""
     try:
