@@ -674,6 +674,22 @@ def _scale(r, tab):
         tab[_SC + 9 + i] = tab[_SC + 8 + i] * r
 
 
+@njit(cache=True, inline="always")
+def _reaction_points(l, K, g, cos_term, ZQ, GW, PQ):
+    """PQ: s of _post's Gauss points (from _tissue_points' ZQ), then k * weight * dz/dxi (_post's W,
+    the same operations), layer by layer, for the model of row g of K."""
+    nq = 11 if cos_term else 7
+    nl = K.shape[1]
+    il = 1.0 / l
+    q = 0
+    for j in range(nl):
+        w = K[g, j] * ZQ[j, 11]
+        for i in range(nq):
+            PQ[q] = ZQ[j, i] * il
+            PQ[q + nl * nq] = w * GW[nq, i]
+            q += 1
+
+
 @njit(cache=True)
 def _tissue_points(T, cos_term, ZQ, GX):
     """ZQ[j, g] = z of _post's Gauss point g in layer j, ZQ[j, 11] the layer's half-thickness."""
@@ -957,10 +973,10 @@ def _newton3c(c, F, kb, tab, pw):
 
 
 @njit(cache=True)
-def _post3c(c, l, K, g, cos_term, tab, eb, es, wk, out, react, m, fq, ZQ, GW):
+def _post3c(c, l, nl, cos_term, tab, eb, es, wk, out, react, m, fq, PQ):
     """_post at p = 3 in closed form, given the energies at c. The layer reactions use _post's Gauss
-    rule (points ZQ from _tissue_points, weights k * half * GW as _post's): their integrand carries
-    sqrt(1 + v'^2), which no rule integrates exactly."""
+    rule (PQ from _reaction_points): their integrand carries sqrt(1 + v'^2), which no rule integrates
+    exactly."""
     c0 = c[0]
     c1 = c[1]
     a = 0.5 * c0 - 0.5 * _R3 * c1
@@ -998,18 +1014,18 @@ def _post3c(c, l, K, g, cos_term, tab, eb, es, wk, out, react, m, fq, ZQ, GW):
     il = 1.0 / l
     a2 = 2.0 * a * il  # dv/dz = s (a2 + b3 s)
     b3 = 3.0 * b * il
-    for j in range(K.shape[1]):
+    for j in range(nl):
         # the points first (independent: the compiler can vectorise the square roots), then the sum
-        w = K[g, j] * ZQ[j, 11]
+        o = j * nq
         for q in range(nq):
-            s = ZQ[j, q] * il
+            s = PQ[o + q]
             v = s * s * (a + b * s)
             if cos_term:
                 dd = s * (a2 + b3 * s)
                 x = v * np.sqrt(1.0 + dd * dd)
             else:
                 x = v
-            fq[q] = w * GW[nq, q] * (x + x * x * x)
+            fq[q] = PQ[o + nl * nq + q] * (x + x * x * x)
         r = 0.0
         for q in range(nq):
             r += fq[q]
@@ -1306,9 +1322,11 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
     ZQ = np.empty((nl, 12))  # _post's Gauss points of Tc, or of the row's thicknesses
     Tc = np.full(nl, np.nan)
     h = 0.0
+    PQ = np.empty(2 * nl * 11)
     if cubic and shared:
         cubic_table(L[0], T[0], K[0], Z3[0], cos_term, tab, mu)
         _tissue_points(T[0], cos_term, ZQ, GX)
+        _reaction_points(L[0], K, 0, cos_term, ZQ, GW, PQ)
     for m in range(start, stop):
         g = 0 if shared else m
         for i in range(pmax):
@@ -1334,6 +1352,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
                         Tc[:] = np.nan
                 if same:
                     cubic_table_rows(L[g], K, g, Z3[g], h, tab, G)
+                _reaction_points(L[g], K, g, cos_term, ZQ, GW, PQ)
             it, st, eb, es, wk_ = _newton3c(c, F[m], KB[g], tab, pw)
             gauss = st == FALLBACK
             if gauss:
@@ -1395,7 +1414,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
             C[m, i] = c[i] if i < p - 1 else 0.0
         if st == OK:
             if p == 3 and not gauss:
-                _post3c(c, L[g], K, g, cos_term, tab, eb, es, wk_, out, R, m, fq, ZQ, GW)
+                _post3c(c, L[g], nl, cos_term, tab, eb, es, wk_, out, R, m, fq, PQ)
             else:
                 _post_any(p, c, F[m], KB[g], L[g], Z3[g], T[g], K[g], cos_term, A, Ad, GX, GW, grid,
                           gphi, wk, out, R[m], fast)
