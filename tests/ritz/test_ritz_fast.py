@@ -75,13 +75,17 @@ def test_fast_path_single_solve_and_failure_report(monkeypatch):
     assert msgs[0] == msgs[1] and "2 of 4 samples" in msgs[1] and "sample 1" in msgs[1]
 
 
+@pytest.mark.parametrize("runs", [False, True], ids=["thickness_per_row", "thickness_in_runs"])
 @pytest.mark.parametrize("cos", [True, False])
-def test_closed_form_order3_on_random_models_and_stiff_tissue(monkeypatch, cos):
+def test_closed_form_order3_on_random_models_and_stiff_tissue(monkeypatch, cos, runs):
     """Every parameter random, tissue up to 10^4 x Table 1 and loads near the bone: the closed form
-    gives the reference's answers and iteration counts, also where |v| peaks inside the span."""
+    gives the reference's answers and iteration counts, also where |v| peaks inside the span; with
+    the thicknesses in runs of 10 rows, through the per-row tables of kernel.cubic_table_rows."""
     rng = np.random.default_rng(11)
     n = 3000
     kw = _random_batch(rng, n)
+    if runs:
+        kw["thickness_mm"] = np.repeat(kw["thickness_mm"][::10], 10, axis=0)
     kw["youngs_modulus_MPa"] = rng.uniform(50e3, 210e3, n)
     kw["k_N_per_mm2"] = np.array([0.048, 0.023]) * np.exp(rng.uniform(np.log(0.1), np.log(1e4), (n, 2)))
     kw["load_point_mm"] = kw["free_length_mm"] * np.exp(rng.uniform(np.log(0.01), 0.0, n))
