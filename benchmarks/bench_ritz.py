@@ -2,6 +2,8 @@
 
     make bench    or    pytest -q benchmarks/bench_ritz.py --benchmark-only -s
     python benchmarks/bench_ritz.py [--n 200000] [--repeat 5]     (the per-core table only)
+    python benchmarks/bench_ritz.py --previous REF [--n 200000] [--repeat 9]
+        (solve_batch of git revision REF against this version, alternating in one process)
 
 Baseline: scipy.optimize.minimize(method="BFGS") with a finite-difference gradient of the SAME
 order-3 energy (same basis and Gauss rule, energy evaluated in NumPy). Targets (issue #4): one warm
@@ -84,6 +86,55 @@ def cpu_table(n=N_BATCH, repeat=5):
         for f, v in zip(FLAGS, saved):
             setattr(solver, f, v)
     return {key: float(np.median(v)) for key, v in times.items()}
+
+
+def previous_ritz(ref: str):
+    """needletissue.ritz of git revision ref: its src exported by `git archive` into a temporary
+    folder and imported as the package needletissue_prev (its own Numba cache: compiles once)."""
+    import importlib
+    import re
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench_ritz_"))
+    root = Path(__file__).resolve().parents[1]
+    tar = subprocess.run(["git", "archive", ref, "src/needletissue"], cwd=root, check=True, capture_output=True)
+    subprocess.run(["tar", "-x", "-C", str(tmp)], input=tar.stdout, check=True)
+    pkg = tmp / "src" / "needletissue"
+    for f in pkg.rglob("*.py"):
+        f.write_text(re.sub(r"\bneedletissue(?=[. \n])", "needletissue_prev", f.read_text()))
+    pkg.rename(pkg.with_name("needletissue_prev"))
+    sys.path.insert(0, str(tmp / "src"))
+    return importlib.import_module("needletissue_prev.ritz")
+
+
+def ab_table(prev, n=N_BATCH, repeat=9) -> str:
+    """solve_batch (serial, default paths) of `prev` and of this version, alternating per batch
+    (order swapped every repeat): median CPU ns per solve and the median of the pair ratios."""
+    import time
+
+    mods = {"previous": prev, "this": ritz}
+    res = {}
+    for kind, (F, kw) in batches(n).items():
+        for est in (True, False):
+            for m in mods.values():  # compile and warm
+                m.solve_batch(F[:10], **{a: v[:10] for a, v in kw.items()}, parallel=False, error_estimate=est)
+    for r in range(repeat):
+        for kind, (F, kw) in batches(n).items():
+            for est in (True, False):
+                for name in (("previous", "this") if r % 2 == 0 else ("this", "previous")):
+                    t0 = time.process_time()
+                    mods[name].solve_batch(F, **kw, parallel=False, error_estimate=est)
+                    res.setdefault((kind, est, name), []).append((time.process_time() - t0) / F.size)
+    rows = ["| batch | estimate | previous | this | pairs |", "|---|---|---|---|---|"]
+    for kind, est, name in res:
+        if name == "this":
+            a, b = np.array(res[(kind, est, "previous")]), np.array(res[(kind, est, "this")])
+            rows.append(f"| {kind} | {'yes' if est else 'no'} | {np.median(a) * 1e9:,.0f} ns | "
+                        f"{np.median(b) * 1e9:,.0f} ns | x{np.median(a / b):.2f} |")
+    return "\n".join(rows)
 
 
 def format_table(cpu) -> str:
@@ -200,9 +251,15 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=N_BATCH)
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--previous", metavar="REF", help="git revision to compare solve_batch against")
     args = ap.parse_args()
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs; N = {args.n:,}, "
           f"{args.repeat} repeats; {sys.version.split()[0]}")
+    if args.previous:
+        print(f"previous = {args.previous}")
+        print(ab_table(previous_ritz(args.previous), args.n, args.repeat))
+        print(f"load average {os.getloadavg()[0]:.2f} at the end")
+        sys.exit(0)
     print(format_table(cpu_table(args.n, args.repeat)))
     for kind, (F, kw) in batches(args.n).items():
         b = ritz.solve_batch(F, **kw, parallel=False)

@@ -75,13 +75,17 @@ def test_fast_path_single_solve_and_failure_report(monkeypatch):
     assert msgs[0] == msgs[1] and "2 of 4 samples" in msgs[1] and "sample 1" in msgs[1]
 
 
+@pytest.mark.parametrize("runs", [False, True], ids=["thickness_per_row", "thickness_in_runs"])
 @pytest.mark.parametrize("cos", [True, False])
-def test_closed_form_order3_on_random_models_and_stiff_tissue(monkeypatch, cos):
+def test_closed_form_order3_on_random_models_and_stiff_tissue(monkeypatch, cos, runs):
     """Every parameter random, tissue up to 10^4 x Table 1 and loads near the bone: the closed form
-    gives the reference's answers and iteration counts, also where |v| peaks inside the span."""
+    gives the reference's answers and iteration counts, also where |v| peaks inside the span; with
+    the thicknesses in runs of 10 rows, through the per-row tables of kernel.cubic_table_rows."""
     rng = np.random.default_rng(11)
     n = 3000
     kw = _random_batch(rng, n)
+    if runs:
+        kw["thickness_mm"] = np.repeat(kw["thickness_mm"][::10], 10, axis=0)
     kw["youngs_modulus_MPa"] = rng.uniform(50e3, 210e3, n)
     kw["k_N_per_mm2"] = np.array([0.048, 0.023]) * np.exp(rng.uniform(np.log(0.1), np.log(1e4), (n, 2)))
     kw["load_point_mm"] = kw["free_length_mm"] * np.exp(rng.uniform(np.log(0.01), 0.0, n))
@@ -112,11 +116,15 @@ def test_force_only_batch_shares_one_model_row(monkeypatch):
 @pytest.mark.parametrize("cos", [True, False])
 def test_model_rows_sharing_thicknesses_equal_one_model_each(cos):
     """Rows with every parameter random but the thicknesses in runs (the per-row table from the
-    thickness columns, reused within a run and rebuilt between runs) against each row alone (one
-    cubic_table): the same iterations, answers and estimates to round-off."""
+    thickness columns, reused within a run and rebuilt between runs; a row alone gets its own
+    cubic_table) against each row alone (one cubic_table): the same iterations, answers and
+    estimates to round-off."""
     rng = np.random.default_rng(11)
     kw = _random_batch(rng, 60)
-    kw["thickness_mm"] = np.repeat(kw["thickness_mm"][:4], 15, axis=0)
+    T = np.repeat(kw["thickness_mm"][:4], 15, axis=0)
+    T[20] *= 0.9  # a single row inside a run, and the last row alone
+    T[59] *= 1.1
+    kw["thickness_mm"] = T
     model = RitzModel(cos_term=cos)
     rows = ritz.solve_batch(**kw, model=model, parallel=False)
     one = [ritz.solve_batch(**{a: v[i:i + 1] for a, v in kw.items() if v is not None}, model=model,
@@ -128,26 +136,40 @@ def test_model_rows_sharing_thicknesses_equal_one_model_each(cos):
                                    atol=1e-12 * np.abs(rows.max_deflection_mm).max(), err_msg=f)
 
 
+def _rows_table(l, T, K, z3, cos):
+    """The per-row table of one model (kernel.cubic_table_rows on thickness_table's columns)."""
+    GX, _ = basis.gauss_tables()
+    nl = T.size
+    G, ZQ, tab = np.empty((nl, kernel._PHI3)), np.empty((nl, 12)), np.empty(kernel._NTAB)
+    h = kernel.thickness_table(T, cos, G, ZQ, np.empty(kernel._NMU), GX)
+    kernel.cubic_table_rows(l, K.reshape(1, nl), 0, z3, h, tab, G)
+    return tab
+
+
 def test_per_row_table_is_cubic_table():
-    """kernel.cubic_table_rows (thickness columns times powers of 1 / l) against cubic_table on random
-    models: to 1e-13, zeros where cubic_table has zeros, _post's Gauss points exactly."""
-    GX, GW = basis.gauss_tables()
+    """kernel.cubic_table_rows (the forms in s = z / h, h the tissue thickness, as sums of per-layer
+    columns) against cubic_table (s = z / l) on random models: the same energy, gradient, Hessian and
+    order-4 step at random coefficients, to round-off (measured <= 4e-15 relative)."""
     rng = np.random.default_rng(5)
+    pw = np.empty(18)
     for cos in (True, False):
         for _ in range(100):
             nl = int(rng.integers(1, 5))
             T, K = rng.uniform(0.01, 30, nl), rng.uniform(1e-3, 1.0, nl)
             l = T.sum() * rng.uniform(1, 3)
             z3 = l * rng.uniform(0.5, 1)
-            ref, tab = np.empty((2, kernel.table_size(nl, cos)))
-            mu = np.empty(kernel._NMU)
-            kernel.cubic_table(l, T, K, z3, cos, ref, mu, GX, GW)
-            G, ZQ = np.empty((nl, kernel._NVK)), np.empty((nl, 12))
-            kernel.thickness_table(T, cos, G, ZQ, mu, GX, GW)
-            kernel.cubic_table_rows(l, K, z3, cos, tab, np.empty(kernel._NVK + 27), G, ZQ, GW)
-            np.testing.assert_array_equal(tab[kernel._PHI3:], ref[kernel._PHI3:])
-            assert np.array_equal(tab == 0, ref == 0)
-            np.testing.assert_allclose(tab, ref, rtol=1e-13, atol=0)
+            ref = np.empty(kernel._NTAB)
+            kernel.cubic_table(l, T, K, z3, cos, ref, np.empty(kernel._NMU))
+            tab = _rows_table(l, T, K, z3, cos)
+            kb, F = rng.uniform(1, 100), rng.uniform(-500, 500)
+            c0, c1 = rng.normal(0, 0.2 * l, 2)
+            for grad in (True, False):
+                a = np.array(kernel._energy3c(c0, c1, ref, kb, F, grad, pw))
+                b = np.array(kernel._energy3c(c0, c1, tab, kb, F, grad, pw))
+                np.testing.assert_allclose(b, a, rtol=1e-13, atol=1e-13 * np.abs(a).max())
+            a = np.array(kernel._step4c(c0, c1, F, kb, ref, pw)[1:])
+            b = np.array(kernel._step4c(c0, c1, F, kb, tab, pw)[1:])
+            np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * np.abs(a).max())
 
 
 def test_without_error_estimate_the_answer_is_the_same_and_says_so():
@@ -223,13 +245,21 @@ def _assert_derivatives(energy, c, g, H):
     np.testing.assert_allclose(H, hess, rtol=1e-5, atol=1e-6 * max(np.diag(H)))
 
 
+def _table(kind, cos):
+    """The order-3 table of the three-layer model: one model's (cubic_table) or a batch row's."""
+    if kind == "rows":
+        return _rows_table(L, T3, K3, Z3, cos)
+    tab = np.empty(kernel._NTAB)
+    kernel.cubic_table(L, T3, K3, Z3, cos, tab, np.empty(kernel._NMU))
+    return tab
+
+
+@pytest.mark.parametrize("kind", ["model", "rows"])
 @pytest.mark.parametrize("cos", [True, False])
-def test_closed_form_energy_is_the_integral(cos):
+def test_closed_form_energy_is_the_integral(cos, kind):
     """The table's energy, gradient and Hessian against an independent computation: the spring
     energy integrated by a 60-point Gauss rule per layer in NumPy, differentiated by central differences."""
-    GX, GW = basis.gauss_tables()
-    tab = np.empty(kernel.table_size(T3.size, cos))
-    kernel.cubic_table(L, T3, K3, Z3, cos, tab, np.empty(kernel._NMU), GX, GW)
+    tab = _table(kind, cos)
     energy = _reference_energy(3, cos)
     c = np.array([7.0, -2.5])
     pi, eb, es, wk, g0, g1, h00, h10, h11 = kernel._energy3c(c[0], c[1], tab, KB, F3, True, np.empty(18))
@@ -295,14 +325,14 @@ def test_one_step_estimate_against_the_full_order4_solve(monkeypatch, cos):
     np.testing.assert_allclose(paper1.error_estimate_mm, paper.error_estimate_mm, rtol=5e-5, atol=1e-15)
 
 
+@pytest.mark.parametrize("kind", ["model", "rows"])
 @pytest.mark.parametrize("cos", [True, False])
-def test_one_step_is_the_newton_step_of_the_order4_energy(cos):
+def test_one_step_is_the_newton_step_of_the_order4_energy(cos, kind):
     """kernel._step4c (order-4 gradient and Hessian at c = (c0, c1, 0) from the table's closed forms)
     against -H^-1 g of the independent NumPy order-4 energy by central differences, and against the same
     step on the Gauss points (kernel._energy4g, exact: to round-off)."""
     GX, GW = basis.gauss_tables()
-    tab = np.empty(kernel.table_size(T3.size, cos))
-    kernel.cubic_table(L, T3, K3, Z3, cos, tab, np.empty(kernel._NMU), GX, GW)
+    tab = _table(kind, cos)
     c = np.array([7.0, -2.5, 0.0])
     pd, *d = kernel._step4c(c[0], c[1], F3, KB, tab, np.empty(18))
     g, H = _differences(_reference_energy(4, cos), c)

@@ -564,13 +564,19 @@ _U2UW2 = _mul(_U2, _UW2)
 _UW4 = _mul(_UW2, _UW2)
 # Layout of the per-model table: the value forms (degrees 2, 4, 6, 8: 3 + 5 + 7 + 9 coefficients),
 # the Hessian forms (degrees 0, 2, 4, 6, triples aa, ab, bb: 3 (1 + 3 + 5 + 7)), the order-4 forms at
-# c = 0 (the same degrees, triples ac, bc, cc), phi0(s3), phi1(s3), phi2(s3) (order 4), then the Gauss
-# points of _post's reaction rule: s and k * weight * dz/dxi, layer by layer.
+# c = 0 (the same degrees, triples ac, bc, cc), phi0(s3), phi1(s3), phi2(s3) (order 4), then the
+# constants of the forms' length scale r (below; _scale).
 # The gradient and the value follow from the Hessian forms by Euler's identity for a form P of
 # degree d: a P_a + b P_b = d P (and the same for P_a, P_b of degree d - 1, and P_c at c = 0).
+# Scale: the forms are in s = z / h with h = r l. At s = z / l (cubic_table) r = 1; the per-row
+# tables (cubic_table_rows) keep h = the tissue's thickness, so that they are sums k_j G_j of columns
+# computed once per thickness set, with no power of l per coefficient. The form in (a, b, c) of
+# s = z / l is the form of s = z / h at (r^2 a, r^3 b, r^4 c) (v = a s^2 + b s^3 + c s^4): its
+# derivatives scale by r^2, r^3, r^4 per a, b, c.
 _NV, _NH = 24, 48
 _PHI3 = _NV + 2 * _NH
-_NTAB = _PHI3 + 3
+_SC = _PHI3 + 3
+_NTAB = _SC + 17
 _NMU = 132  # cubic_table's scratch
 _INV = 1.0 / np.arange(1.0, 25.0)  # _INV[n - 1] = 1 / n (multiplications, not divisions, per moment)
 # Beyond these the closed form hands the sample to the Gauss path, which then reports exactly what it
@@ -579,11 +585,6 @@ _INV = 1.0 / np.arange(1.0, 25.0)  # _INV[n - 1] = 1 / n (multiplications, not d
 _C_BIG = 1e30  # mm
 _E_BIG = 1e150  # N mm
 FALLBACK = -1
-
-
-@njit(cache=True)
-def table_size(nl, cos_term):
-    return _NTAB + 2 * nl * (11 if cos_term else 7)
 
 
 @njit(cache=True, inline="always")
@@ -606,80 +607,101 @@ def _value_forms(k, mu, l, il2, out, o):
 
 
 @njit(cache=True)
-def cubic_table(l, T, K, z3, cos_term, tab, mu, GX, GW):
-    """Fill tab (table_size) with the order-3 energy forms of one model (geometry and k; not F), and
-    the order-4 forms at c = 0 of the error estimate's Newton step. mu: scratch of _NMU floats
-    (offsets, not slices: a slice costs two reference-count updates)."""
+def cubic_table(l, T, K, z3, cos_term, tab, mu):
+    """Fill tab (_NTAB) with the order-3 energy forms of one model (geometry and k; not F), and the
+    order-4 forms at c = 0 of the error estimate's Newton step, in s = z / l (r = 1). mu: scratch of
+    _NMU floats (offsets, not slices: a slice costs two reference-count updates)."""
     _moments(1.0 / l, T, K, mu)
-    _forms_table(l, z3, cos_term, tab, mu)
-    _gauss_points(1.0 / l, T, K, cos_term, tab, GX, GW)
-
-
-# The forms' coefficients by power k of c: V[:24] (k = 0, the value forms), V[24:44] (k = 1) and
-# V[44:60] (k = 2), from which _expand derives the rest of the table. A row of a batch that shares its
-# layer thicknesses with the previous row gets V from precomputed columns (cubic_table_rows): V is
-# linear in the k_j and V[i] scales as l^-_LPOW[i] (s = z / l; a term b^i c^k of a form of degree d
-# carries s^(2d + 2k + i) after the l of dz = l ds).
-_LPOW = np.array([2 * d + 2 * k + i for k in range(3) for d in (2, 4, 6, 8) for i in range(d + 1 - k)])
-_NVK = 60
+    _all_forms(mu, l, (1.0 if cos_term else 0.0) / (l * l), mu, 72)
+    _expand(mu, 72, tab)
+    _phi3(l, z3, tab)
+    _scale(1.0, tab)
 
 
 @njit(cache=True)
-def thickness_table(T, cos_term, G, ZQ, mu, GX, GW):
-    """G[j] = V at l = 1, k = unit in layer j; ZQ[j, g] = z of _post's Gauss point g, and ZQ[j, 11]
-    the half-thickness (mu: scratch of _NMU floats)."""
+def thickness_table(T, cos_term, G, ZQ, mu, GX):
+    """Columns of the per-row tables of one thickness set: G[j] = the forms (tab[:_PHI3]) of a unit k
+    in layer j alone, in s = z / h, h = the total thickness (returned; 0 without layers); and _post's
+    Gauss points (_tissue_points). mu: scratch of _NMU floats."""
     nl = T.shape[0]
+    h = 0.0
+    for j in range(nl):
+        h += T[j]
     e = np.zeros(nl)
     for j in range(nl):
         e[j] = 1.0
-        _moments(1.0, T, e, mu)
+        _moments(1.0 / h, T, e, mu)
         e[j] = 0.0
-        _all_forms(mu, 1.0, 1.0 if cos_term else 0.0, mu, 72)
-        for i in range(_NVK):
-            G[j, i] = mu[72 + i]
+        _all_forms(mu, h, (1.0 if cos_term else 0.0) / (h * h), mu, 72)
+        _expand(mu, 72, G[j])
+    _tissue_points(T, cos_term, ZQ, GX)
+    return h
+
+
+@njit(cache=True)
+def cubic_table_rows(l, K, g, z3, h, tab, G):
+    """cubic_table of row g of K from thickness_table's columns G (total thickness h): the forms
+    sum_j k_j G_j in s = z / h, r = h / l. The same energy as cubic_table's to round-off (~1e-15 relative), not bit for
+    bit: every coefficient is rounded once in its own k-combination."""
+    for i in range(_PHI3):
+        tab[i] = 0.0
+    for j in range(K.shape[1]):  # may be 0 layers (no tissue)
+        kj = K[g, j]
+        for i in range(_PHI3):
+            tab[i] += kj * G[j, i]
+    _phi3(l, z3, tab)
+    _scale(h / l, tab)
+
+
+@njit(cache=True, inline="always")
+def _scale(r, tab):
+    """tab[_SC:]: the chain rule from the table's scaled (a, b) = (r^2 a, r^3 b) to c (_powers,
+    _to_c; at r = 1 exactly the constants of da/dc = (1/2, -sqrt(3)/2), db/dc = (0, 1/sqrt(3)), so a
+    force-only batch's table gives the same bits as before the scale), then r^0..r^8 (_step4c)."""
+    r2 = r * r
+    r4 = r2 * r2
+    tab[_SC] = 0.5 * r2
+    tab[_SC + 1] = 0.5 * _R3 * r2
+    tab[_SC + 2] = (1.0 / _R3) * (r2 * r)
+    tab[_SC + 3] = 0.25 * r4
+    tab[_SC + 4] = (1.0 / _R3) * (r4 * r)
+    tab[_SC + 5] = 0.5 * _R3 * r4
+    tab[_SC + 6] = 0.75 * r4
+    tab[_SC + 7] = r4 * r
+    tab[_SC + 8] = (1.0 / 3.0) * (r4 * r2)
+    tab[_SC + 9] = 1.0
+    for i in range(1, 9):
+        tab[_SC + 9 + i] = tab[_SC + 8 + i] * r
+
+
+@njit(cache=True, inline="always")
+def _reaction_points(l, K, g, cos_term, ZQ, GW, PQ):
+    """PQ: s of _post's Gauss points (from _tissue_points' ZQ), then k * weight * dz/dxi (_post's W,
+    the same operations), layer by layer, for the model of row g of K."""
+    nq = 11 if cos_term else 7
+    nl = K.shape[1]
+    il = 1.0 / l
+    q = 0
+    for j in range(nl):
+        w = K[g, j] * ZQ[j, 11]
+        for i in range(nq):
+            PQ[q] = ZQ[j, i] * il
+            PQ[q + nl * nq] = w * GW[nq, i]
+            q += 1
+
+
+@njit(cache=True)
+def _tissue_points(T, cos_term, ZQ, GX):
+    """ZQ[j, g] = z of _post's Gauss point g in layer j, ZQ[j, 11] the layer's half-thickness."""
     nq = 11 if cos_term else 7
     za = 0.0
-    for j in range(nl):
+    for j in range(T.shape[0]):
         zb = za + T[j]
         half = 0.5 * (zb - za)
         for g in range(nq):
             ZQ[j, g] = za + half * (GX[nq, g] + 1.0)
         ZQ[j, 11] = half
         za = zb
-
-
-@njit(cache=True)
-def cubic_table_rows(l, K, z3, cos_term, tab, V, G, ZQ, GW):
-    """cubic_table from thickness_table's G, ZQ (the forms equal to a few ulp, the Gauss points
-    exactly); V: scratch of _NVK + 27 floats."""
-    il = 1.0 / l
-    il4 = (il * il) * (il * il)
-    p = _NVK  # V[p + n] = il^n, in four independent chains
-    V[p] = 1.0
-    V[p + 1] = il
-    V[p + 2] = il * il
-    V[p + 3] = V[p + 2] * il
-    for n in range(4, 27):
-        V[p + n] = V[p + n - 4] * il4
-    nl = K.shape[0]
-    for i in range(_NVK):
-        V[i] = 0.0
-    for j in range(nl):  # nl may be 0 (no tissue)
-        kj = K[j]
-        for i in range(_NVK):
-            V[i] += kj * G[j, i]
-    for i in range(_NVK):
-        V[i] *= V[p + _LPOW[i]]
-    _expand(V, 0, tab)
-    _phi3(l, z3, tab)
-    nq = 11 if cos_term else 7
-    q = _NTAB
-    for j in range(nl):
-        w = K[j] * ZQ[j, 11]
-        for g in range(nq):
-            tab[q] = ZQ[j, g] * il
-            tab[q + nl * nq] = w * GW[nq, g]
-            q += 1
 
 
 @njit(cache=True, inline="always")
@@ -749,14 +771,6 @@ def _moments(il, T, K, mu):
 
 
 @njit(cache=True, inline="always")
-def _forms_table(l, z3, cos_term, tab, mu):
-    """tab[:_NTAB] from the moments mu[:24] (mu[72:132]: scratch)."""
-    _all_forms(mu, l, (1.0 if cos_term else 0.0) / (l * l), mu, 72)
-    _expand(mu, 72, tab)
-    _phi3(l, z3, tab)
-
-
-@njit(cache=True, inline="always")
 def _phi3(l, z3, tab):
     s3 = z3 / l
     tab[_PHI3] = 0.5 * s3 * s3
@@ -764,27 +778,10 @@ def _phi3(l, z3, tab):
     tab[_PHI3 + 2] = s3 * s3 * (_M4[2, 0] + s3 * (_M4[2, 1] + s3 * _M4[2, 2]))
 
 
-@njit(cache=True, inline="always")
-def _gauss_points(il, T, K, cos_term, tab, GX, GW):
-    """tab[_NTAB:]: the Gauss points of _post's reaction rule."""
-    nq = 11 if cos_term else 7
-    nl = T.shape[0]
-    q = _NTAB
-    za = 0.0
-    for j in range(nl):
-        zb = za + T[j]
-        half = 0.5 * (zb - za)
-        for g in range(nq):
-            tab[q] = (za + half * (GX[nq, g] + 1.0)) * il
-            tab[q + nl * nq] = K[j] * half * GW[nq, g]  # _post's W, same operations
-            q += 1
-        za = zb
-
-
 @njit(cache=True)
 def _energy3c(c0, c1, tab, kb, F, grad, pw):
     """Order-3 energy from the table: (Pi, U_bend, U_spring, work, g0, g1, H00, H10, H11) in c."""
-    a, b = _powers(c0, c1, pw)
+    a, b = _powers(c0, c1, tab, pw)
     eb = 0.5 * kb * (c0 * c0 + c1 * c1)
     wk = F * (c0 * tab[_PHI3] + c1 * tab[_PHI3 + 1])
     es = 0.0
@@ -804,10 +801,11 @@ def _energy3c(c0, c1, tab, kb, F, grad, pw):
 
 
 @njit(cache=True, inline="always")
-def _powers(c0, c1, pw):
-    """(a, b) of the order-3 coefficients c, and pw[k] = a^k, pw[9 + k] = b^k (k <= 8)."""
-    a = 0.5 * c0 - 0.5 * _R3 * c1
-    b = c1 * (1.0 / _R3)
+def _powers(c0, c1, tab, pw):
+    """(a, b) of the order-3 coefficients c in the table's scale (r^2 a, r^3 b), and pw[k] = a^k,
+    pw[9 + k] = b^k (k <= 8)."""
+    a = tab[_SC] * c0 - tab[_SC + 1] * c1
+    b = c1 * tab[_SC + 2]
     pw[0] = 1.0
     pw[9] = 1.0
     for k in range(1, 9):
@@ -821,7 +819,7 @@ def _forms(a, b, tab, pw, quartic):
     """The Hessian forms (degrees 0, 2, 4, 6; triples aa, ab, bb from tab[_NV]) at (a, b), and by Euler
     the gradient and the value of the spring energy: (P_a, P_b, U_spring, H_aa, H_ab, H_bb); with
     quartic also the order-4 forms at c = 0 (triples ac, bc, cc from tab[_NV + _NH], same monomials):
-    P_c, H_ac, H_bc, H_cc (else zeros)."""
+    P_c, H_ac, H_bc, H_cc (else zeros). (a, b) and the derivatives in the table's scale (_powers)."""
     p1 = p2 = val = h11 = h12 = h22 = 0.0
     pc = hac = hbc = hcc = 0.0
     k = _NV
@@ -863,22 +861,25 @@ def _step4c(c0, c1, F, kb, tab, pw):
     """The error estimate's order-4 step: one Newton step from the order-3 answer (c0, c1, 0), its
     gradient and Hessian from the closed-form forms at c = 0 (exact like order 3's; no Gauss points).
     (positive definite, d0, d1, d2) in the order-4 basis coefficients."""
-    a, b = _powers(c0, c1, pw)
+    a, b = _powers(c0, c1, tab, pw)
     ga, gb, es, haa, hab, hbb, gc, hac, hbc, hcc = _forms(a, b, tab, pw, True)
-    r = _to_x4(kb, F, c0, c1, 0.0, tab[_PHI3], tab[_PHI3 + 1], tab[_PHI3 + 2], ga, gb, gc,
-               haa, hab, hbb, hac, hbc, hcc)
+    o = _SC + 9  # r^0: the derivatives back in s = z / l, for _to_x4
+    r = _to_x4(kb, F, c0, c1, 0.0, tab[_PHI3], tab[_PHI3 + 1], tab[_PHI3 + 2], ga * tab[o + 2],
+               gb * tab[o + 3], gc * tab[o + 4], haa * tab[o + 4], hab * tab[o + 5], hbb * tab[o + 6],
+               hac * tab[o + 6], hbc * tab[o + 7], hcc * tab[o + 8])
     return _chol3(r[3], r[4], r[5], r[6], r[7], r[8], r[0], r[1], r[2], 0.0)
 
 
 @njit(cache=True)
 def _to_c(kb, F, c0, c1, tab, ga, gb, haa, hab, hbb):
-    """Gradient and Hessian in c from those of the spring energy in (a, b), with bending and load:
-    da/dc = (1/2, -sqrt(3)/2), db/dc = (0, 1/sqrt(3))."""
-    g0 = kb * c0 - F * tab[_PHI3] + 0.5 * ga
-    g1 = kb * c1 - F * tab[_PHI3 + 1] - 0.5 * _R3 * ga + gb * (1.0 / _R3)
-    h00 = kb + 0.25 * haa
-    h10 = 0.5 * (hab * (1.0 / _R3) - 0.5 * _R3 * haa)
-    h11 = kb + 0.75 * haa - hab + hbb * (1.0 / 3.0)
+    """Gradient and Hessian in c from those of the spring energy in the table's (a, b), with bending
+    and load: da/dc = (1/2, -sqrt(3)/2) r^2, db/dc = (0, 1/sqrt(3)) r^3 (_scale)."""
+    o = _SC
+    g0 = kb * c0 - F * tab[_PHI3] + tab[o] * ga
+    g1 = kb * c1 - F * tab[_PHI3 + 1] - tab[o + 1] * ga + gb * tab[o + 2]
+    h00 = kb + tab[o + 3] * haa
+    h10 = 0.5 * (hab * tab[o + 4] - tab[o + 5] * haa)
+    h11 = kb + tab[o + 6] * haa - tab[o + 7] * hab + hbb * tab[o + 8]
     return g0, g1, h00, h10, h11
 
 
@@ -972,9 +973,10 @@ def _newton3c(c, F, kb, tab, pw):
 
 
 @njit(cache=True)
-def _post3c(c, l, nl, cos_term, tab, eb, es, wk, out, react, fq):
+def _post3c(c, l, nl, cos_term, tab, eb, es, wk, out, react, m, fq, PQ):
     """_post at p = 3 in closed form, given the energies at c. The layer reactions use _post's Gauss
-    rule (from the table): their integrand carries sqrt(1 + v'^2), which no rule integrates exactly."""
+    rule (PQ from _reaction_points): their integrand carries sqrt(1 + v'^2), which no rule integrates
+    exactly."""
     c0 = c[0]
     c1 = c[1]
     a = 0.5 * c0 - 0.5 * _R3 * c1
@@ -1012,23 +1014,22 @@ def _post3c(c, l, nl, cos_term, tab, eb, es, wk, out, react, fq):
     il = 1.0 / l
     a2 = 2.0 * a * il  # dv/dz = s (a2 + b3 s)
     b3 = 3.0 * b * il
-    q = _NTAB
     for j in range(nl):
         # the points first (independent: the compiler can vectorise the square roots), then the sum
-        for g in range(nq):
-            s = tab[q + g]
+        o = j * nq
+        for q in range(nq):
+            s = PQ[o + q]
             v = s * s * (a + b * s)
             if cos_term:
                 dd = s * (a2 + b3 * s)
                 x = v * np.sqrt(1.0 + dd * dd)
             else:
                 x = v
-            fq[g] = tab[q + nl * nq + g] * (x + x * x * x)
+            fq[q] = PQ[o + nl * nq + q] * (x + x * x * x)
         r = 0.0
-        for g in range(nq):
-            r += fq[g]
-        react[j] = r
-        q += nq
+        for q in range(nq):
+            r += fq[q]
+        react[m, j] = r
 
 
 # ---- Order 4 for the order-3 error estimate (issue 18) ----
@@ -1305,7 +1306,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
     wk = _workspace(pmax + 1, nl)
     c = np.zeros(pmax)
     c2 = np.zeros(pmax)
-    tab = np.empty(table_size(nl, cos_term))
+    tab = np.empty(_NTAB)
     mu = np.empty(_NMU)
     pw = np.empty(18)
     fq = np.empty(11)
@@ -1317,12 +1318,15 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
     # one closed-form order-4 Newton step for the order-3 estimate (not in auto: order 5 starts from
     # the converged order 4); where its Hessian is not positive definite, the full order-4 solve
     step4 = cubic and mono4 and step and not auto
-    if cubic and shared:
-        cubic_table(L[0], T[0], K[0], Z3[0], cos_term, tab, mu, GX, GW)
-    G = np.empty((nl, _NVK))  # thickness_table of the thicknesses Tc
-    ZQ = np.empty((nl, 12))
-    V = np.empty(_NVK + 27)
+    G = np.empty((nl, _PHI3))  # thickness_table of the thicknesses Tc (total h)
+    ZQ = np.empty((nl, 12))  # _post's Gauss points of Tc, or of the row's thicknesses
     Tc = np.full(nl, np.nan)
+    h = 0.0
+    PQ = np.empty(2 * nl * 11)
+    if cubic and shared:
+        cubic_table(L[0], T[0], K[0], Z3[0], cos_term, tab, mu)
+        _tissue_points(T[0], cos_term, ZQ, GX)
+        _reaction_points(L[0], K, 0, cos_term, ZQ, GW, PQ)
     for m in range(start, stop):
         g = 0 if shared else m
         for i in range(pmax):
@@ -1334,10 +1338,21 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
                 same = True
                 for j in range(nl):
                     same = same and T[g, j] == Tc[j]
-                if not same:
-                    thickness_table(T[g], cos_term, G, ZQ, mu, GX, GW)
-                    Tc[:] = T[g]
-                cubic_table_rows(L[g], K[g], Z3[g], cos_term, tab, V, G, ZQ, GW)
+                if not same:  # columns for a run of equal thicknesses, else this row's own table
+                    nxt = g + 1 < T.shape[0]
+                    for j in range(nl):
+                        nxt = nxt and T[g + 1, j] == T[g, j]
+                    if nxt:
+                        h = thickness_table(T[g], cos_term, G, ZQ, mu, GX)
+                        Tc[:] = T[g]
+                        same = True
+                    else:
+                        cubic_table(L[g], T[g], K[g], Z3[g], cos_term, tab, mu)
+                        _tissue_points(T[g], cos_term, ZQ, GX)
+                        Tc[:] = np.nan
+                if same:
+                    cubic_table_rows(L[g], K, g, Z3[g], h, tab, G)
+                _reaction_points(L[g], K, g, cos_term, ZQ, GW, PQ)
             it, st, eb, es, wk_ = _newton3c(c, F[m], KB[g], tab, pw)
             gauss = st == FALLBACK
             if gauss:
@@ -1399,7 +1414,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
             C[m, i] = c[i] if i < p - 1 else 0.0
         if st == OK:
             if p == 3 and not gauss:
-                _post3c(c, L[g], nl, cos_term, tab, eb, es, wk_, out, R[m], fq)
+                _post3c(c, L[g], nl, cos_term, tab, eb, es, wk_, out, R, m, fq, PQ)
             else:
                 _post_any(p, c, F[m], KB[g], L[g], Z3[g], T[g], K[g], cos_term, A, Ad, GX, GW, grid,
                           gphi, wk, out, R[m], fast)
