@@ -136,6 +136,22 @@ def test_mesh_is_conforming_and_complete(coarse):
         assert len(faces) > 0, name
 
 
+def test_solved_mesh_reports_its_quality_and_volumes(coarse, vol, site):
+    """The results' mesh quality: region volumes add up to the mesh volume, and the bones and the large
+    tissues keep their voxel volume within 10 % on the coarse mesh (tissue by smoothed centroid label)."""
+    from needletissue.geometry.tetmesh import tet_quality
+    from needletissue.models.pelvis.model import mesh_quality
+
+    q = mesh_quality(coarse, gp.crop_to_site(vol, site))
+    assert q["inverted"] == 0 and 0 < q["min_dihedral_deg"] <= q["p01_dihedral_deg"] < 70.5
+    total = tet_quality(coarse.points, coarse.cells)["volume"].sum()
+    solids = sum(tet_quality(coarse.points, coarse.cells[coarse.regions[n]])["volume"].sum()
+                 for n in ("needle_1", "needle_2", "clamp"))
+    assert sum(q["volume_mm3"].values()) == pytest.approx(total - solids, rel=1e-9)
+    for name in ("hip_bone", "sacrum", "femur", "iliopsoas", "adipose"):
+        assert abs(q["volume_error_vs_labels"][name]) < 0.10, (name, q["volume_error_vs_labels"])
+
+
 def test_quadratic_needles_have_the_cylinder_volume(coarse):
     """Straight-edged tets inscribe a polygon (coarse: ~5 sides, ~25 % area lost); with the midside
     nodes on the cylinder the tetra10 needle volume converges to pi r^2 L (2 % at 3 mm elements)."""
@@ -269,6 +285,26 @@ def test_cli_rejects_bad_input(args, field):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ))
     assert r.returncode == 2, r.stderr
     assert field in r.stderr and "Traceback" not in r.stderr
+
+
+def test_cli_names_a_label_map_off_the_ct_grid_and_a_needle_missing_the_bone(tmp_path):
+    """Bad input reaches the user as one line naming the field, exit code 2: a label map on another grid
+    than the CT (--labels), and needle entries whose axis misses the hip bone (--config entries)."""
+    import nibabel as nib
+
+    src = gp.data_dir() / "pelvis_ct"
+    img = nib.load(src / "example_seg_fast_force_split.nii.gz")
+    bad = tmp_path / "labels.nii.gz"
+    nib.save(nib.Nifti1Image(np.asarray(img.dataobj)[:-2].astype(np.uint8), img.affine), bad)
+    far = tmp_path / "config.toml"
+    far.write_text("entries = [[400.0, 400.0, 900.0], [420.0, 400.0, 900.0]]\ndirection = [0.0, 0.0, 1.0]\n")
+    for args, field in ((["--ct", str(src / "example_ct.nii.gz"), "--labels", str(bad)], "labels"),
+                        (["--config", str(far)], "needle.entries[0]")):
+        code = (f"import sys; sys.argv = ['needletissue', 'fe', 'pelvis', *{args!r}];"
+                "from needletissue.cli import main; main()")
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ))
+        assert r.returncode == 2, r.stderr
+        assert field in r.stderr and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) <= 3
 
 
 def test_linear_order_coarse_solve_equilibrium():

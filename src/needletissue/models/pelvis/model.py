@@ -215,6 +215,28 @@ def build(config: PelvisConfig):
     return vol, mesh
 
 
+def mesh_quality(pm, vol) -> dict:
+    """Quality and fidelity of the linear mesh that is solved (its tetra10 has the same corners): dihedral
+    angles (min, 1st percentile of the per-element minimum), and each tissue's mesh volume against its
+    voxel volume in the cropped label map (hip cortical + cancellous against hip_bone; needles and clamp
+    replace the tissue they occupy, so the soft tissue they cross reads a little low)."""
+    from needletissue.geometry.pelvis import TISSUES
+    from needletissue.geometry.tetmesh import tet_quality
+
+    q = tet_quality(pm.points, pm.cells)
+    vols = {n: float(q["volume"][ids].sum()) for n, ids in pm.regions.items()}
+    vols["hip_bone"] = vols.pop("hip_cortical", 0.0) + vols.pop("hip_cancellous", 0.0)
+    counts = np.bincount(vol.labels.ravel(), minlength=len(TISSUES) + 1)
+    label = {n: float(counts[i] * vol.spacing ** 3) for i, n in TISSUES.items() if counts[i]}
+    return {"min_dihedral_deg": float(q["min_dihedral"].min()),
+            "p01_dihedral_deg": float(np.percentile(q["min_dihedral"], 1)),
+            "below_10_deg": int(np.count_nonzero(q["min_dihedral"] < 10.0)),
+            "inverted": int(np.count_nonzero(q["volume"] <= 0)),
+            "volume_mm3": {n: vols[n] for n in label if n in vols},
+            "label_volume_mm3": label,
+            "volume_error_vs_labels": {n: vols[n] / v - 1.0 for n, v in label.items() if n in vols}}
+
+
 def force_unit(config: PelvisConfig, site) -> np.ndarray:
     d = np.asarray(config.force_direction, float)
     d = d / np.linalg.norm(d)
@@ -382,7 +404,8 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
               "linear_nodes": int(len(pm.points)),
               "cells_by_region": {k: int(len(v)) for k, v in qm.regions.items()},
               "dofs": int(model.ndof), "min_quality": float(tm.quality().min()),
-              "region_tags": {k: int(v) for k, v in fe[-1].region_tags.items()}},
+              "region_tags": {k: int(v) for k, v in fe[-1].region_tags.items()},
+              "quality": mesh_quality(pm, vol)},
         wall_time_s=time.perf_counter() - t0,
         results=loads,
         ranking=ranking,
