@@ -39,6 +39,16 @@ def coarse(vol, site):
     return gp.build_mesh(v, site, mesh_size=6.0, needle_size=3.0, far_size=18.0)
 
 
+@pytest.fixture(scope="module")
+def smooth(vol, site):
+    """The model's mesh through the `segment` + `mesh` route at 6 mm (~160 k tets, ~15 s)."""
+    from needletissue.imaging.segment import segment
+
+    d = gp.data_dir() / "pelvis_ct"
+    seg = segment(d / "example_ct.nii.gz", d / "example_seg_fast_force_split.nii.gz")
+    return gp.build_mesh_smooth(seg, gp.crop_to_site(vol, site), site, mesh_size=6.0)
+
+
 def test_missing_data_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setenv("NEEDLETISSUE_DATA", str(tmp_path / "nowhere"))
     with pytest.raises(InputError, match="data folder not found"):
@@ -136,6 +146,39 @@ def test_mesh_is_conforming_and_complete(coarse):
         assert len(faces) > 0, name
 
 
+def test_smooth_route_mesh_has_exact_needles_the_model_regions_and_supports(smooth, vol, site):
+    """`mesher="smooth"`: the segmentation's smooth conforming mesh with the pins and the clamp inserted
+    exactly. Every model region and support set is there, the pins' surface nodes lie on the cylinders to
+    1e-6 mm and the pins have the inscribed polygon's volume, the quality goals of the `mesh` route hold
+    (min dihedral >= 10 deg, 1st percentile >= 20), the supports lie on the crop's cut planes, and the bone
+    keeps its voxel volume within 3 %."""
+    from needletissue.geometry.tetmesh import tet_quality
+
+    m = smooth
+    assert set(m.regions) == {"hip_cortical", "hip_cancellous", "sacrum", "femur", "gluteus_maximus",
+                              "gluteus_medius", "gluteus_minimus", "iliopsoas", "body_wall", "adipose",
+                              "needle_1", "needle_2", "clamp"}
+    ids = np.concatenate(list(m.regions.values()))
+    assert np.array_equal(np.sort(ids), np.arange(len(m.cells)))
+    q = tet_quality(m.points, m.cells)
+    assert q["volume"].min() > 0
+    assert q["min_dihedral"].min() >= 10.0 and np.percentile(q["min_dihedral"], 1) >= 20.0
+    r = site.diameter / 2
+    for i, (b, t) in enumerate(m.needle_axes):
+        nodes = np.unique(m.cells[m.regions[f"needle_{i + 1}"]])
+        L = np.linalg.norm(t - b)
+        d = m.points[nodes] - b
+        rad = np.linalg.norm(d - np.outer(d @ ((t - b) / L), (t - b) / L), axis=1)
+        assert rad.max() < r + 1e-6 and np.count_nonzero(np.abs(rad - r) < 1e-6) > 0.5 * len(nodes)
+        assert 0.95 * np.pi * r * r * L < q["volume"][m.regions[f"needle_{i + 1}"]].sum() < np.pi * r * r * L
+    v = gp.crop_to_site(vol, site)
+    lo, hi = v.bounds
+    assert np.allclose(m.points[m.surfaces["femur_fixed"].ravel(), 2], lo[2], atol=1e-6)
+    assert np.allclose(m.points[m.surfaces["midline"].ravel(), 0], lo[0], atol=1e-6)
+    bone = sum(q["volume"][m.regions[n]].sum() for n in ("hip_cortical", "hip_cancellous", "sacrum", "femur"))
+    assert bone == pytest.approx(np.isin(v.labels, (1, 2, 3)).sum() * v.spacing ** 3, rel=0.03)
+
+
 def test_solved_mesh_reports_its_quality_and_volumes(coarse, vol, site):
     """The results' mesh quality: region volumes add up to the mesh volume, and the bones and the large
     tissues keep their voxel volume within 10 % on the coarse mesh (tissue by smoothed centroid label)."""
@@ -212,6 +255,10 @@ def test_bad_inputs_name_the_field():
         PelvisConfig(interfaces="glued")
     with pytest.raises(InputError, match="friction needle-muscle"):
         PelvisConfig(friction={"needle-muscle": -0.3})
+    with pytest.raises(InputError, match="mesher"):
+        PelvisConfig(mesher="gmsh")
+    with pytest.raises(InputError, match="mesher"):
+        PelvisConfig(mesher="smooth", source="ssm")
     with pytest.raises(InputError, match="contact_dhat"):
         PelvisConfig(contact_dhat=0.0)
     for kw, field in ((dict(order=3), "order"), (dict(order=True), "order"),

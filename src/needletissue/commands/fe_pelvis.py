@@ -28,6 +28,9 @@ def register(app, groups) -> None:
                                           help="Needle element size, mm (default 2/3 of --mesh-size)."),
         far_size: float = typer.Option(None, "--far-size",
                                        help="Element size 35 mm and more from the needles, mm (default 4x --mesh-size)."),
+        mesher: str = typer.Option("box", "--mesher", help="box (gmsh box with exact needles and clamp, tissue "
+                                   "by element centroid, graded) or smooth (CT: the `segment` + `mesh` reconstruction "
+                                   "with the needles and clamp inserted exactly; uniform --mesh-size)."),
         order: int = typer.Option(2, "--order", help="Element order: 2 (tetra10, curved needles) or 1 (linear "
                                                      "tets, the paper's; needs fine needles, see docs)."),
         needle_diameter: float = typer.Option(5.0, "--needle-diameter", help="Needle diameter, mm."),
@@ -74,7 +77,7 @@ def register(app, groups) -> None:
                "labels": ("labels", str(labels) if labels else None), "site": ("site", site),
                "side": ("side", side), "mesh_size": ("mesh_size", mesh_size),
                "needle_size": ("needle_size", needle_size), "far_size": ("far_size", far_size),
-               "order": ("order", order), "needle_diameter": ("needle_diameter", needle_diameter),
+               "order": ("order", order), "mesher": ("mesher", mesher), "needle_diameter": ("needle_diameter", needle_diameter),
                "si_joint": ("si_joint", si_joint), "interfaces": ("interfaces", interfaces),
                "contact_dhat": ("contact_dhat", contact_dhat), "contact_eps_v": ("contact_eps_v", contact_eps_v)}
         kw.update(v for k, v in cli.items() if k in given)

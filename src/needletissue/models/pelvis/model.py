@@ -73,6 +73,10 @@ class PelvisConfig:
     mesh_size       soft-tissue element size next to the needles, mm (paper: 3)
     needle_size     needle element size, mm (default 2*mesh_size/3; quadratic tets)
     far_size        element size far (refine_radius) from the needles, mm (default 4*mesh_size)
+    mesher          "box" (gmsh box fragmented with the needles and the clamp, tissue per element by its
+                    smoothed centroid label; graded around the needles) or "smooth" (CT only: the `segment` +
+                    `mesh` reconstruction, geometry.smooth, with the needles and the clamp inserted exactly;
+                    uniform size mesh_size, the label map coarsened to it; needle_size on the solids)
     order           2 (tetra10, curved needle surfaces; the default) or 1 (linear tets: the paper's element
                     type, for the paper-scale run of benchmarks/paper_scale_pelvis.py; stiffer in bending,
                     so it needs fine needles, and the needles stay inscribed polygons)
@@ -103,6 +107,7 @@ class PelvisConfig:
     refine_radius: float = 35.0
     cortical_thickness: float = 1.5
     ssm_spacing: float = 2.0
+    mesher: str = "box"
     order: int = 2
     formulation: str = "mixed"
     tissue_bulk_ratio: float | None = None  # K/mu0 of the tissue; None: the materials' K
@@ -122,6 +127,10 @@ class PelvisConfig:
             raise InputError("source", f"must be 'ct' or 'ssm', got {self.source!r}")
         if self.si_joint not in ("fixed", "bonded"):
             raise InputError("si_joint", f"must be 'fixed' or 'bonded', got {self.si_joint!r}")
+        if self.mesher not in ("box", "smooth"):
+            raise InputError("mesher", f"must be 'box' or 'smooth', got {self.mesher!r}")
+        if self.mesher == "smooth" and self.source != "ct":
+            raise InputError("mesher", "'smooth' meshes the CT's segmentation: use source 'ct' (or mesher 'box')")
         if self.interfaces not in ("bonded", "paper"):
             raise InputError("interfaces", f"must be 'bonded' or 'paper', got {self.interfaces!r}")
         for name, mu in self.friction.items():
@@ -209,6 +218,13 @@ def build(config: PelvisConfig):
     else:
         site = gp.standard_site(vol, config.site, **kw)
     vol = gp.crop_to_site(vol, site)
+    if config.mesher == "smooth":
+        from needletissue.imaging.segment import SegmentationConfig, segment
+
+        d = None if config.ct else gp.data_dir() / "pelvis_ct"
+        seg = segment(config.ct or d / "example_ct.nii.gz", config.labels or d / "example_seg_fast_force_split.nii.gz",
+                      SegmentationConfig(cortical_thickness=config.cortical_thickness))
+        return vol, gp.build_mesh_smooth(seg, vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size)
     mesh = gp.build_mesh(vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size,
                          far_size=config.far_size, cortical_thickness=config.cortical_thickness,
                          refine_radius=config.refine_radius)
@@ -405,7 +421,7 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
               "cells_by_region": {k: int(len(v)) for k, v in qm.regions.items()},
               "dofs": int(model.ndof), "min_quality": float(tm.quality().min()),
               "region_tags": {k: int(v) for k, v in fe[-1].region_tags.items()},
-              "quality": mesh_quality(pm, vol)},
+              "quality": mesh_quality(pm, vol), "mesher": config.mesher, "mesh_info": pm.info},
         wall_time_s=time.perf_counter() - t0,
         results=loads,
         ranking=ranking,
