@@ -448,6 +448,7 @@ class PelvisMesh:
     needle_axes: list  # [(bottom point in bone, top point in clamp)]
     notes: list = field(default_factory=list)
     info: dict = field(default_factory=dict)  # how the mesh was built (smooth route: mesh_info)
+    label_volumes: dict | None = None  # region -> voxel volume (mm^3) of the label map it was meshed from
 
     def to_meshio(self):
         """meshio mesh with gmsh physical groups named as the regions and surfaces."""
@@ -863,7 +864,7 @@ def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float 
     element's centroid (the corridor in which the exact solids are inserted)."""
     from scipy import ndimage
 
-    from needletissue.geometry.tetmesh import MeshConfig, tet_mesh
+    from needletissue.geometry.tetmesh import MeshConfig, _crop_and_coarsen, tet_mesh
 
     check_number("mesh_size", mesh_size, ge=0.5, le=20)
     needle_size = 2 * mesh_size / 3 if needle_size is None else check_number("needle_size", needle_size, ge=0.2, le=10)
@@ -907,6 +908,17 @@ def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float 
         "segmentation: imaging.segment (other_soft_tissue -> body_wall; bone elements hip / sacrum / femur by "
         "the nearest bone voxel of the label map)",
     ]
-    out = PelvisMesh(pts, tm.cells, regions, surfaces, site, paths, frame, axes, notes)
-    out.info = tm.info
+    # the label map's volumes in the model's names: soft tissue from the segmentation (the same crop, not
+    # coarsened), bones from the label volume (both are the label map's bone voxels)
+    seg_arr = _crop_and_coarsen(seg, MeshConfig(size=vol.spacing, crop=box, coarsen=False))[0]
+    counts = np.bincount(seg_arr.ravel(), minlength=256) * vol.spacing ** 3
+    label = {}
+    for n, i in seg.tissues.items():
+        base = n.removesuffix("_left").removesuffix("_right")
+        if base in SEG_REGIONS or base in regions:
+            label[SEG_REGIONS.get(base, base)] = label.get(SEG_REGIONS.get(base, base), 0.0) + float(counts[i])
+    bones = np.bincount(vol.labels.ravel(), minlength=4) * vol.spacing ** 3
+    label.update({"hip_bone": float(bones[1]), "sacrum": float(bones[2]), "femur": float(bones[3])})
+    out = PelvisMesh(pts, tm.cells, regions, surfaces, site, paths, frame, axes, notes, tm.info,
+                     {k: v for k, v in label.items() if v > 0})
     return out

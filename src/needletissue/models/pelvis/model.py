@@ -234,7 +234,8 @@ def build(config: PelvisConfig):
 def mesh_quality(pm, vol) -> dict:
     """Quality and fidelity of the linear mesh that is solved (its tetra10 has the same corners): dihedral
     angles (min, 1st percentile of the per-element minimum), and each tissue's mesh volume against its
-    voxel volume in the cropped label map (hip cortical + cancellous against hip_bone; needles and clamp
+    voxel volume in the label map the mesh was made from (pm.label_volumes: the segmentation for the smooth
+    route; else the cropped label volume; hip cortical + cancellous against hip_bone; needles and clamp
     replace the tissue they occupy, so the soft tissue they cross reads a little low)."""
     from needletissue.geometry.pelvis import TISSUES
     from needletissue.geometry.tetmesh import tet_quality
@@ -243,7 +244,9 @@ def mesh_quality(pm, vol) -> dict:
     vols = {n: float(q["volume"][ids].sum()) for n, ids in pm.regions.items()}
     vols["hip_bone"] = vols.pop("hip_cortical", 0.0) + vols.pop("hip_cancellous", 0.0)
     counts = np.bincount(vol.labels.ravel(), minlength=len(TISSUES) + 1)
-    label = {n: float(counts[i] * vol.spacing ** 3) for i, n in TISSUES.items() if counts[i]}
+    label = dict(pm.label_volumes or {n: float(counts[i] * vol.spacing ** 3) for i, n in TISSUES.items() if counts[i]})
+    bones = ("hip_bone", "sacrum", "femur")   # all bone: the split between bones is per element
+    vols["bone"], label["bone"] = (sum(d.get(b, 0.0) for b in bones) for d in (vols, label))
     return {"min_dihedral_deg": float(q["min_dihedral"].min()),
             "p01_dihedral_deg": float(np.percentile(q["min_dihedral"], 1)),
             "below_10_deg": int(np.count_nonzero(q["min_dihedral"] < 10.0)),
