@@ -394,7 +394,7 @@ def test_needles_and_clamp_are_inserted_exactly_into_smooth_tissue():
     seg = make_seg(arr, tissues, spacing=h, origin=tuple(origin))   # x and y flipped, as LPS from RAS
     c = origin + np.array([-9.5 * h, -9.5 * h, 0.0])
     axes = [(c + (dx, 0, 10.0), c + (dx, 0, 100.0)) for dx in (-6.0, 6.0)]
-    clamp_h, bar = 20.0, 42.0
+    clamp_h, bar = 20.0, 70.0      # the bar sticks out of the image in x: the label map is padded there
     solids = needle_solids(axes, r, np.eye(3), c + (0, 0, 80.0), (clamp_h, 20.0), bar, 2.0, margin=r + 1.5 * h)
     mesh = tet_mesh(seg, config=MeshConfig(size=h, method="smooth"), solids=solids)
     q = tet_quality(mesh.points, mesh.cells)
@@ -417,6 +417,12 @@ def test_needles_and_clamp_are_inserted_exactly_into_smooth_tissue():
     holes = 2 * np.pi * r * r * clamp_h
     assert vol["clamp"] == pytest.approx(bar * 20.0 * clamp_h - holes, rel=0.01)
     assert mesh.materials["needle_1"] == "needle" and mesh.materials["clamp"] == "clamp"
+    # the image's cut faces stay flat where the array was padded for the bar: tissue nodes end on them
+    tissue = np.unique(mesh.cells[np.concatenate([mesh.regions[n] for n in tissues])])
+    x = mesh.points[tissue, 0]
+    for plane in (origin[0] + 0.5 * h, origin[0] - 19.5 * h):
+        assert np.count_nonzero(np.abs(x - plane) < 1e-9) > 50
+    assert x.min() >= origin[0] - 19.5 * h - 1e-9 and x.max() <= origin[0] + 0.5 * h + 1e-9
     # pins cross 12 mm of fat, 18 mm of muscle and 18.5 mm of bone (bone top at z = 28.5 mm)
     pins = {"adipose": 12.0, "iliopsoas": 18.0, "cancellous_bone": 18.5}
     counts = {n: np.count_nonzero(arr == tissues[n]) * h ** 3 for n in pins}

@@ -40,13 +40,38 @@ def coarse(vol, site):
 
 
 @pytest.fixture(scope="module")
-def smooth(vol, site):
-    """The model's mesh through the `segment` + `mesh` route at 6 mm (~160 k tets, ~15 s)."""
+def seg():
     from needletissue.imaging.segment import segment
 
     d = gp.data_dir() / "pelvis_ct"
-    seg = segment(d / "example_ct.nii.gz", d / "example_seg_fast_force_split.nii.gz")
-    return gp.build_mesh_smooth(seg, gp.crop_to_site(vol, site), site, mesh_size=6.0)
+    return segment(d / "example_ct.nii.gz", d / "example_seg_fast_force_split.nii.gz")
+
+
+@pytest.fixture(scope="module")
+def smooth(seg, site):
+    """The model's mesh through the `segment` + `mesh` route at 6 mm (~160 k tets, ~15 s), its site, paths and
+    crop from the same segmentation (as `mesher="smooth"` builds it)."""
+    return gp.build_mesh_smooth(seg, gp.crop_to_site(gp.segmentation_label_volume(seg), site), site, mesh_size=6.0)
+
+
+def test_segmentation_label_volume_is_the_models_label_volume(seg, vol):
+    """From a `segment` result: the same hemipelvis grid and the same bone voxels as the model's own reader
+    (both from the label map), the muscles within the segmentation's majority filter (Dice >= 0.85), the
+    same standard site; a segmentation without bones.nii.gz is named."""
+    from dataclasses import replace
+
+    v = gp.segmentation_label_volume(seg)
+    assert v.labels.shape == vol.labels.shape and np.allclose(v.origin, vol.origin) and v.spacing == vol.spacing
+    for i in (1, 2, 3):
+        assert np.array_equal(v.labels == i, vol.labels == i)
+    for i in (4, 5, 6, 7, 8):
+        a, b = v.labels == i, vol.labels == i
+        assert 2 * np.count_nonzero(a & b) / (a.sum() + b.sum()) >= 0.85, gp.TISSUES[i]
+    s1, s2 = gp.standard_site(v), gp.standard_site(vol)
+    assert np.allclose(s1.entries, s2.entries) and np.allclose(s1.direction, s2.direction)
+    with pytest.raises(InputError, match="bones.nii.gz") as exc:
+        gp.segmentation_label_volume(replace(seg, bones=None))
+    assert exc.value.field == "segmentation"
 
 
 def test_missing_data_is_a_clear_error(tmp_path, monkeypatch):
@@ -146,7 +171,7 @@ def test_mesh_is_conforming_and_complete(coarse):
         assert len(faces) > 0, name
 
 
-def test_smooth_route_mesh_has_exact_needles_the_model_regions_and_supports(smooth, vol, site):
+def test_smooth_route_mesh_has_exact_needles_the_model_regions_and_supports(smooth, seg, site):
     """`mesher="smooth"`: the segmentation's smooth conforming mesh with the pins and the clamp inserted
     exactly. Every model region and support set is there, the pins' surface nodes lie on the cylinders to
     1e-6 mm and the pins have the inscribed polygon's volume, the quality goals of the `mesh` route hold
@@ -171,7 +196,7 @@ def test_smooth_route_mesh_has_exact_needles_the_model_regions_and_supports(smoo
         rad = np.linalg.norm(d - np.outer(d @ ((t - b) / L), (t - b) / L), axis=1)
         assert rad.max() < r + 1e-6 and np.count_nonzero(np.abs(rad - r) < 1e-6) > 0.5 * len(nodes)
         assert 0.95 * np.pi * r * r * L < q["volume"][m.regions[f"needle_{i + 1}"]].sum() < np.pi * r * r * L
-    v = gp.crop_to_site(vol, site)
+    v = gp.crop_to_site(gp.segmentation_label_volume(seg), site)
     lo, hi = v.bounds
     assert np.allclose(m.points[m.surfaces["femur_fixed"].ravel(), 2], lo[2], atol=1e-6)
     assert np.allclose(m.points[m.surfaces["midline"].ravel(), 0], lo[0], atol=1e-6)
@@ -259,6 +284,8 @@ def test_bad_inputs_name_the_field():
         PelvisConfig(mesher="gmsh")
     with pytest.raises(InputError, match="mesher"):
         PelvisConfig(mesher="smooth", source="ssm")
+    with pytest.raises(InputError, match="segmentation"):
+        PelvisConfig(segmentation="seg")              # a segment folder is meshed by the smooth mesher
     with pytest.raises(InputError, match="contact_dhat"):
         PelvisConfig(contact_dhat=0.0)
     for kw, field in ((dict(order=3), "order"), (dict(order=True), "order"),
@@ -462,6 +489,38 @@ def test_written_config_is_accepted_back(tmp_path, monkeypatch):
     got = seen[-1]
     assert got.mesh_size == 5.0 and got.needle_size == 3.0 and got.side == "left" and got.out is None
     assert got.friction == {"needle-muscle": 0.3, "bone-needle": 0.9}
+
+
+def test_cli_segmentation_folder_selects_the_smooth_mesher(tmp_path, monkeypatch):
+    """`fe pelvis --segmentation DIR` runs the smooth mesher on that `segment` folder; a folder without
+    tissues.nii.gz is one error line naming --segmentation (exit 2)."""
+    from typer.testing import CliRunner
+
+    import needletissue.models.pelvis as pelvis_pkg
+    from needletissue.cli import app
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_run(config):
+        seen.append(config)
+        raise Stop
+
+    monkeypatch.setattr(pelvis_pkg, "run_pelvis_model", fake_run)
+    (tmp_path / "tissues.nii.gz").write_bytes(b"")
+    res = CliRunner().invoke(app, ["fe", "pelvis", "--segmentation", str(tmp_path), "--mesh-size", "6"])
+    assert isinstance(res.exception, Stop), res.output
+    assert seen[-1].mesher == "smooth" and seen[-1].segmentation == str(tmp_path) and seen[-1].mesh_size == 6.0
+    res = CliRunner().invoke(app, ["fe", "pelvis", "--mesher", "smooth"])
+    assert isinstance(res.exception, Stop) and seen[-1].mesher == "smooth" and seen[-1].segmentation is None
+    res = CliRunner().invoke(app, ["fe", "pelvis"])
+    assert isinstance(res.exception, Stop) and seen[-1].mesher == "box"
+    code = (f"import sys; sys.argv = ['needletissue', 'fe', 'pelvis', '--segmentation', {str(tmp_path / 'none')!r}];"
+            "from needletissue.cli import main; main()")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ))
+    assert r.returncode == 2 and "--segmentation" in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
 def test_a_run_stopped_while_writing_leaves_out_as_it_was(tmp_path, monkeypatch):

@@ -182,6 +182,51 @@ def ct_label_volume(ct: str | Path | None = None, labels: str | Path | None = No
     return vol
 
 
+def segmentation_label_volume(seg, side: str = "right") -> LabelVolume:
+    """The model's LabelVolume (RAS, one hemipelvis) from a `needletissue segment` result (imaging.segment.
+    Segmentation with bones.nii.gz): hip / sacrum / femur of the chosen side from the bones image, the
+    side's four muscles, adipose, and other_soft_tissue as body_wall (all of it: the segmentation already
+    leaves organs out). The same label map the smooth mesher meshes, so site, paths and mesh agree."""
+    import SimpleITK as sitk
+
+    from needletissue.imaging.segment import BONE_IDS
+
+    if side not in CT_LABELS:
+        raise InputError("side", f"must be 'right' or 'left', got {side!r}")
+    if seg.bones is None:
+        raise InputError("segmentation", "has no bones.nii.gz: run `needletissue segment` with --labels (the model "
+                                         "needs hip bone, sacrum and femur apart)")
+    D = np.asarray(seg.labels.GetDirection(), float).reshape(3, 3)
+    sp = np.asarray(seg.labels.GetSpacing(), float)
+    if not np.allclose(np.abs(D), np.eye(3)) or not np.allclose(sp, sp[0], rtol=1e-3):
+        raise InputError("segmentation", f"needs an axis-aligned isotropic grid, got spacing {sp}")
+    flip = np.diag(D) * RAS_LPS < 0           # index axes along which RAS decreases: reversed
+    view = lambda img: np.flip(sitk.GetArrayFromImage(img).transpose(2, 1, 0), tuple(np.flatnonzero(flip)))  # noqa: E731
+    tis, bones = view(seg.labels), view(seg.bones)
+    lab = np.zeros(tis.shape, np.uint8)
+    ids = {n: i for i, n in TISSUES.items()}
+    for name, tid in (("hip_bone", f"hip_{side}"), ("sacrum", "sacrum"), ("femur", f"femur_{side}")):
+        lab[bones == BONE_IDS[tid]] = ids[name]
+    for name in ("gluteus_maximus", "gluteus_medius", "gluteus_minimus", "iliopsoas"):
+        for n in (f"{name}_{side}", name):
+            if n in seg.tissues:
+                lab[(tis == seg.tissues[n]) & (lab == 0)] = ids[name]
+    for n, name in (("adipose", "adipose"), ("other_soft_tissue", "body_wall")):
+        if n in seg.tissues:
+            lab[(tis == seg.tissues[n]) & (lab == 0)] = ids[name]
+    missing = [n for n in ("hip_bone", "sacrum", "femur", "gluteus_maximus", "gluteus_medius", "gluteus_minimus",
+                           "iliopsoas", "adipose") if not np.any(lab == ids[n])]
+    if missing:
+        raise InputError("segmentation", f"has no {', '.join(missing)} on the {side} side; the model needs every "
+                                         "one of them")
+    first = np.where(flip, np.array(tis.shape) - 1, 0)
+    origin = np.asarray(seg.labels.TransformContinuousIndexToPhysicalPoint(first.astype(float).tolist())) * RAS_LPS
+    lab, origin, _ = _crop_hemipelvis(lab, origin, float(sp[0]), side)
+    vol = LabelVolume(lab, origin, float(sp[0]), side, f"segmentation:{seg.source or 'in memory'}")
+    vol.notes.append("labels from the segmentation (imaging.segment): body_wall = its other_soft_tissue")
+    return vol
+
+
 def ssm_label_volume(side: str = "right", spacing: float = 2.0, muscle_mm: float = 22.0,
                      adipose_mm: float = 10.0) -> LabelVolume:
     """Tissue labels around the mean SSM hip bone and sacrum (bone surfaces only).

@@ -213,8 +213,12 @@ def restore_volumes(points, faces, boundary_labels, target, fixed, iterations: i
 
 
 def smooth_interfaces(arr: np.ndarray, spacing, *, iterations: int = 16, scale: float = 0.3,
-                      relaxation: float = 0.5, max_repair: int = 12, restore: bool = True) -> InterfaceSurfaces:
-    """Surface nets of a label array (z, y, x), constrained smoothing, intersections repaired."""
+                      relaxation: float = 0.5, max_repair: int = 12, restore: bool = True,
+                      flat=None) -> InterfaceSurfaces:
+    """Surface nets of a label array (z, y, x), constrained smoothing, intersections repaired.
+
+    flat: (lo, hi) voxel index ranges (x, y, z) whose border planes stay flat (default: the array's; a
+    padded array passes its crop's)."""
     import pyvista as pv
     from scipy.spatial import cKDTree
 
@@ -251,8 +255,8 @@ def smooth_interfaces(arr: np.ndarray, spacing, *, iterations: int = 16, scale: 
     edges = unique_edges(faces)
     # vertices on the image / crop border planes stay put: the cut faces stay flat and its corners sharp
     idx = x0 / sp
-    top = np.asarray(arr.shape[::-1], float) - 0.5
-    on_border = np.any(np.isclose(idx, -0.5) | np.isclose(idx, top), axis=1)
+    lo, hi = (np.zeros(3), np.asarray(arr.shape[::-1], float)) if flat is None else np.asarray(flat, float)
+    on_border = np.any(np.isclose(idx, lo - 0.5) | np.isclose(idx, hi - 0.5), axis=1)
     w = np.where(on_border | pinched, 0.0, 1.0)
     vol0 = label_volumes(x0, faces, bl)   # = the voxel volumes (raw faces are voxel faces)
     vol_s = label_volumes(x1, faces, bl)
@@ -858,7 +862,8 @@ SLIVER_SHIFT = 1 / 3        # x voxel: a flat element this thin may change tissu
 
 def _pad_for_solids(seg, arr, start, f, solids):
     """Zero-pad the (cropped, coarsened) label array so that the solids and their corridor fit inside it
-    (no more: a tissue cut by a padded side is no longer a flat cut face). Returns (arr, start)."""
+    (no more). Returns (arr, start, the crop's voxel index ranges (x, y, z) in it or None: its cut faces
+    stay flat)."""
     D = np.asarray(seg.labels.GetDirection(), float).reshape(3, 3)
     sp0 = np.asarray(seg.labels.GetSpacing(), float)
     idx = (np.asarray(solids.points, float) - np.asarray(seg.labels.GetOrigin(), float)) @ D / sp0  # (x, y, z)
@@ -868,9 +873,9 @@ def _pad_for_solids(seg, arr, start, f, solids):
     shape = np.asarray(arr.shape[::-1])
     pad_lo, pad_hi = np.maximum(-lo, 0), np.maximum(hi - shape, 0)
     if not (pad_lo.any() or pad_hi.any()):
-        return arr, start
+        return arr, start, None
     arr = np.pad(arr, list(zip(pad_lo[::-1], pad_hi[::-1])))
-    return arr, np.asarray(start) - pad_lo * f
+    return arr, np.asarray(start) - pad_lo * f, (pad_lo, pad_lo + shape)
 
 
 def _largest_body(cells, tag):
@@ -909,8 +914,9 @@ def smooth_tet_mesh(seg, cfg, solids: Solids | None = None):
     t0 = time.perf_counter()
     cpu = [time.process_time()]
     arr, start, f, names = _crop_and_coarsen(seg, cfg)
+    flat = None
     if solids is not None:
-        arr, start = _pad_for_solids(seg, arr, start, f, solids)
+        arr, start, flat = _pad_for_solids(seg, arr, start, f, solids)
     sp, to_phys = _grid_frame(seg, arr, start, f)
     bone_ids = [seg.tissues[n] for n in BONE if n in names]
     work = arr.copy()
@@ -921,7 +927,7 @@ def smooth_tet_mesh(seg, cfg, solids: Solids | None = None):
         tissue = work.copy()
         near = solids.label(to_phys(_grid_centres(work, sp)), solids.margin) >= 0
         work[near.reshape(work.shape)] = CORRIDOR
-    surf = smooth_interfaces(work, sp, iterations=cfg.smoothing_iterations, scale=cfg.smoothing_scale)
+    surf = smooth_interfaces(work, sp, iterations=cfg.smoothing_iterations, scale=cfg.smoothing_scale, flat=flat)
     plc_points, plc_faces = surf.points, surf.faces
     if solids is not None:   # the exact solid surfaces inside the corridor: same PLC, no Boolean needed
         plc_points = np.vstack([surf.points, to_phys.inverse(solids.points)])

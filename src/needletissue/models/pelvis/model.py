@@ -76,7 +76,10 @@ class PelvisConfig:
     mesher          "box" (gmsh box fragmented with the needles and the clamp, tissue per element by its
                     smoothed centroid label; graded around the needles) or "smooth" (CT only: the `segment` +
                     `mesh` reconstruction, geometry.smooth, with the needles and the clamp inserted exactly;
-                    uniform size mesh_size, the label map coarsened to it; needle_size on the solids)
+                    uniform size mesh_size, the label map coarsened to it; needle_size on the solids). With
+                    "smooth" the site, paths and crop come from the same segmentation (segmentation_label_volume)
+    segmentation    folder written by `needletissue segment` (tissues.nii.gz, bones.nii.gz): the label map of
+                    the smooth mesher instead of segmenting ct + labels again
     order           2 (tetra10, curved needle surfaces; the default) or 1 (linear tets: the paper's element
                     type, for the paper-scale run of benchmarks/paper_scale_pelvis.py; stiffer in bending,
                     so it needs fine needles, and the needles stay inscribed polygons)
@@ -91,6 +94,7 @@ class PelvisConfig:
     source: str = "ct"
     ct: str | None = None
     labels: str | None = None
+    segmentation: str | None = None  # a `needletissue segment` folder (mesher "smooth"): instead of ct + labels
     side: str = "right"
     site: str = "supra_acetabular"
     entries: list | None = None
@@ -131,6 +135,8 @@ class PelvisConfig:
             raise InputError("mesher", f"must be 'box' or 'smooth', got {self.mesher!r}")
         if self.mesher == "smooth" and self.source != "ct":
             raise InputError("mesher", "'smooth' meshes the CT's segmentation: use source 'ct' (or mesher 'box')")
+        if self.segmentation is not None and (self.mesher != "smooth" or self.ct or self.labels):
+            raise InputError("segmentation", "a `segment` folder is meshed by mesher 'smooth', instead of ct/labels")
         if self.interfaces not in ("bonded", "paper"):
             raise InputError("interfaces", f"must be 'bonded' or 'paper', got {self.interfaces!r}")
         for name, mu in self.friction.items():
@@ -203,7 +209,18 @@ def build(config: PelvisConfig):
     """Labels, needle site and the linear conforming mesh for `config` (geometry.pelvis.PelvisMesh)."""
     from needletissue.geometry import pelvis as gp
 
-    if config.source == "ct":
+    seg = None
+    if config.mesher == "smooth":   # one label map for the site, the paths and the mesh: the segmentation's
+        from needletissue.imaging.segment import Segmentation, SegmentationConfig, segment
+
+        if config.segmentation:
+            seg = Segmentation.load(config.segmentation)
+        else:
+            d = None if config.ct else gp.data_dir() / "pelvis_ct"
+            seg = segment(config.ct or d / "example_ct.nii.gz", config.labels or d / "example_seg_fast_force_split.nii.gz",
+                          SegmentationConfig(cortical_thickness=config.cortical_thickness))
+        vol = gp.segmentation_label_volume(seg, side=config.side)
+    elif config.source == "ct":
         vol = gp.ct_label_volume(config.ct, config.labels, side=config.side)
     else:
         vol = gp.ssm_label_volume(side=config.side, spacing=config.ssm_spacing)
@@ -218,12 +235,7 @@ def build(config: PelvisConfig):
     else:
         site = gp.standard_site(vol, config.site, **kw)
     vol = gp.crop_to_site(vol, site)
-    if config.mesher == "smooth":
-        from needletissue.imaging.segment import SegmentationConfig, segment
-
-        d = None if config.ct else gp.data_dir() / "pelvis_ct"
-        seg = segment(config.ct or d / "example_ct.nii.gz", config.labels or d / "example_seg_fast_force_split.nii.gz",
-                      SegmentationConfig(cortical_thickness=config.cortical_thickness))
+    if seg is not None:
         return vol, gp.build_mesh_smooth(seg, vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size)
     mesh = gp.build_mesh(vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size,
                          far_size=config.far_size, cortical_thickness=config.cortical_thickness,
@@ -449,7 +461,7 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
     )
     if contact is not None:
         res.contact = contact.summary(config.forces, [r.displacement for r in fe])
-    if config.source == "ct" and config.crosscheck_thickness:
+    if config.source == "ct" and config.crosscheck_thickness and not config.segmentation:
         res.thickness_img = thickness_crosscheck(config, pm)
     res.comparison = comparison_table(res)
     if out_dir is not None:
