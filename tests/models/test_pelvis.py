@@ -455,14 +455,32 @@ def test_needle_interfaces_in_contact_are_more_compliant(tmp_path):
     assert np.linalg.norm(R + F) < 0.01 * 20.0, (R, F)
 
 
-def test_written_config_is_accepted_back(tmp_path, monkeypatch):
+class Stop(Exception):
+    pass
+
+
+@pytest.fixture
+def cli_config(monkeypatch):
+    """`fe pelvis` runs up to the model: the PelvisConfig it would run is appended to `seen`, then Stop."""
+    import needletissue.models.pelvis as pelvis_pkg
+
+    seen = []
+
+    def fake_run(config):
+        seen.append(config)
+        raise Stop
+
+    monkeypatch.setattr(pelvis_pkg, "run_pelvis_model", fake_run)
+    return seen, Stop
+
+
+def test_written_config_is_accepted_back(tmp_path, cli_config):
     """The config.toml `fe pelvis --out` writes (write_run_files of the PelvisConfig without `out`) is
     accepted back by `fe pelvis --config`: the same config; command-line options override the file."""
     from dataclasses import asdict
 
     from typer.testing import CliRunner
 
-    import needletissue.models.pelvis as pelvis_pkg
     from needletissue.cli import app
     from needletissue.models.pelvis import PelvisConfig
     from needletissue.runinfo import write_run_files
@@ -470,16 +488,7 @@ def test_written_config_is_accepted_back(tmp_path, monkeypatch):
     cfg = PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[50.0, 100.0], side="left",
                        friction={"needle-muscle": 0.3}, contact_dhat=0.2, figures=False, out=str(tmp_path))
     write_run_files(tmp_path, {k: v for k, v in asdict(cfg).items() if k != "out"}, {})
-    seen = []
-
-    class Stop(Exception):
-        pass
-
-    def fake_run(config):
-        seen.append(config)
-        raise Stop
-
-    monkeypatch.setattr(pelvis_pkg, "run_pelvis_model", fake_run)
+    seen, Stop = cli_config
     res = CliRunner().invoke(app, ["fe", "pelvis", "--config", str(tmp_path / "config.toml"), "--out", str(tmp_path)])
     assert isinstance(res.exception, Stop), res.output
     assert asdict(seen[-1]) == {**asdict(cfg), "progress": True}
@@ -491,24 +500,14 @@ def test_written_config_is_accepted_back(tmp_path, monkeypatch):
     assert got.friction == {"needle-muscle": 0.3, "bone-needle": 0.9}
 
 
-def test_cli_segmentation_folder_selects_the_smooth_mesher(tmp_path, monkeypatch):
+def test_cli_segmentation_folder_selects_the_smooth_mesher(tmp_path, cli_config):
     """`fe pelvis --segmentation DIR` runs the smooth mesher on that `segment` folder; a folder without
     tissues.nii.gz is one error line naming --segmentation (exit 2)."""
     from typer.testing import CliRunner
 
-    import needletissue.models.pelvis as pelvis_pkg
     from needletissue.cli import app
 
-    seen = []
-
-    class Stop(Exception):
-        pass
-
-    def fake_run(config):
-        seen.append(config)
-        raise Stop
-
-    monkeypatch.setattr(pelvis_pkg, "run_pelvis_model", fake_run)
+    seen, Stop = cli_config
     (tmp_path / "tissues.nii.gz").write_bytes(b"")
     res = CliRunner().invoke(app, ["fe", "pelvis", "--segmentation", str(tmp_path), "--mesh-size", "6"])
     assert isinstance(res.exception, Stop), res.output
