@@ -376,3 +376,66 @@ def test_gmsh_optimize_in_two_processes_equals_one_and_keeps_interfaces():
                                     one[1][:, [0, 2, 1, 3]]))
     assert vol_min_dihedral(one[0][one[1]])[1].min() > vol_min_dihedral(x[c])[1].min()   # it optimised
     assert _surface_triangles(*one) == _surface_triangles(x, c, tag)   # interfaces and boundary fixed
+
+
+def test_needles_and_clamp_are_inserted_exactly_into_smooth_tissue():
+    """Two 5 mm pins through fat, muscle and into bone, joined by a clamp bar outside the body (the
+    anatomical model's solids) in a 3 mm label map with an LPS-like direction: the pins' surface nodes lie
+    on the cylinders to 1e-6 mm, the pins have the inscribed polygon's volume (>= 12 sides: at most 4.5 %
+    below pi r^2 L), the clamp the bar's volume less the two pin holes, the tissues their voxel volumes less
+    the pins, and the quality goals hold (min dihedral >= 10 deg, 1st percentile >= 20)."""
+    from labelmaps import layered_slab
+
+    from needletissue.geometry.pelvis import needle_solids
+
+    h, r = 3.0, 2.5
+    arr, tissues = layered_slab(nz=24, nxy=20, fat_vox=4, muscle_vox=6)
+    origin = np.array([60.0, 50.0, 0.0])
+    seg = make_seg(arr, tissues, spacing=h, origin=tuple(origin))   # x and y flipped, as LPS from RAS
+    c = origin + np.array([-9.5 * h, -9.5 * h, 0.0])
+    axes = [(c + (dx, 0, 10.0), c + (dx, 0, 100.0)) for dx in (-6.0, 6.0)]
+    clamp_h, bar = 20.0, 70.0      # the bar sticks out of the image in x: the label map is padded there
+    solids = needle_solids(axes, r, np.eye(3), c + (0, 0, 80.0), (clamp_h, 20.0), bar, 2.0, margin=r + 1.5 * h)
+    mesh = tet_mesh(seg, config=MeshConfig(size=h, method="smooth"), solids=solids)
+    q = tet_quality(mesh.points, mesh.cells)
+    assert q["volume"].min() > 0
+    _, cnt = np.unique(np.sort(mesh.cells[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]].reshape(-1, 3), 1),
+                       axis=0, return_counts=True)
+    assert cnt.max() == 2
+    assert q["min_dihedral"].min() >= 10.0 and np.percentile(q["min_dihedral"], 1) >= 20.0
+    vol = {n: q["volume"][ids].sum() for n, ids in mesh.regions.items()}
+    L = 90.0
+    for i, (b, t) in enumerate(axes):
+        nodes = np.unique(mesh.cells[mesh.regions[f"needle_{i + 1}"]])
+        d = mesh.points[nodes] - b
+        a = (t - b) / L
+        rad = np.linalg.norm(d - np.outer(d @ a, a), axis=1)
+        assert rad.max() < r + 1e-6
+        on = np.abs(rad - r) < 1e-6
+        assert on.sum() > 0.8 * len(nodes)      # a pin is mostly surface nodes at this size
+        assert 0.955 * np.pi * r * r * L <= vol[f"needle_{i + 1}"] < np.pi * r * r * L
+    holes = 2 * np.pi * r * r * clamp_h
+    assert vol["clamp"] == pytest.approx(bar * 20.0 * clamp_h - holes, rel=0.01)
+    assert mesh.materials["needle_1"] == "needle" and mesh.materials["clamp"] == "clamp"
+    # the image's cut faces stay flat where the array was padded for the bar: tissue nodes end on them
+    tissue = np.unique(mesh.cells[np.concatenate([mesh.regions[n] for n in tissues])])
+    x = mesh.points[tissue, 0]
+    for plane in (origin[0] + 0.5 * h, origin[0] - 19.5 * h):
+        assert np.count_nonzero(np.abs(x - plane) < 1e-9) > 50
+    assert x.min() >= origin[0] - 19.5 * h - 1e-9 and x.max() <= origin[0] + 0.5 * h + 1e-9
+    # pins cross 12 mm of fat, 18 mm of muscle and 18.5 mm of bone (bone top at z = 28.5 mm)
+    pins = {"adipose": 12.0, "iliopsoas": 18.0, "cancellous_bone": 18.5}
+    counts = {n: np.count_nonzero(arr == tissues[n]) * h ** 3 for n in pins}
+    for n, depth in pins.items():
+        assert vol[n] == pytest.approx(counts[n] - 2 * np.pi * r * r * depth, rel=0.03), n
+
+
+def test_solids_need_the_smooth_method():
+    from labelmaps import layered_slab
+
+    from needletissue.geometry.smooth import Solids
+
+    arr, tissues = layered_slab()
+    s = Solids(["needle_1"], np.zeros((3, 3)), np.array([[0, 1, 2]]), lambda p, g=0.0: np.full(len(p), -1), 1.0)
+    with pytest.raises(InputError, match="method"):
+        tet_mesh(make_seg(arr, tissues), config=MeshConfig(method="voxel"), solids=s)

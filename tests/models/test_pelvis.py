@@ -39,6 +39,41 @@ def coarse(vol, site):
     return gp.build_mesh(v, site, mesh_size=6.0, needle_size=3.0, far_size=18.0)
 
 
+@pytest.fixture(scope="module")
+def seg():
+    from needletissue.imaging.segment import segment
+
+    d = gp.data_dir() / "pelvis_ct"
+    return segment(d / "example_ct.nii.gz", d / "example_seg_fast_force_split.nii.gz")
+
+
+@pytest.fixture(scope="module")
+def smooth(seg, site):
+    """The model's mesh through the `segment` + `mesh` route at 6 mm (~160 k tets, ~15 s), its site, paths and
+    crop from the same segmentation (as `mesher="smooth"` builds it)."""
+    return gp.build_mesh_smooth(seg, gp.crop_to_site(gp.segmentation_label_volume(seg), site), site, mesh_size=6.0)
+
+
+def test_segmentation_label_volume_is_the_models_label_volume(seg, vol):
+    """From a `segment` result: the same hemipelvis grid and the same bone voxels as the model's own reader
+    (both from the label map), the muscles within the segmentation's majority filter (Dice >= 0.85), the
+    same standard site; a segmentation without bones.nii.gz is named."""
+    from dataclasses import replace
+
+    v = gp.segmentation_label_volume(seg)
+    assert v.labels.shape == vol.labels.shape and np.allclose(v.origin, vol.origin) and v.spacing == vol.spacing
+    for i in (1, 2, 3):
+        assert np.array_equal(v.labels == i, vol.labels == i)
+    for i in (4, 5, 6, 7, 8):
+        a, b = v.labels == i, vol.labels == i
+        assert 2 * np.count_nonzero(a & b) / (a.sum() + b.sum()) >= 0.85, gp.TISSUES[i]
+    s1, s2 = gp.standard_site(v), gp.standard_site(vol)
+    assert np.allclose(s1.entries, s2.entries) and np.allclose(s1.direction, s2.direction)
+    with pytest.raises(InputError, match="bones.nii.gz") as exc:
+        gp.segmentation_label_volume(replace(seg, bones=None))
+    assert exc.value.field == "segmentation"
+
+
 def test_missing_data_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setenv("NEEDLETISSUE_DATA", str(tmp_path / "nowhere"))
     with pytest.raises(InputError, match="data folder not found"):
@@ -136,6 +171,55 @@ def test_mesh_is_conforming_and_complete(coarse):
         assert len(faces) > 0, name
 
 
+def test_smooth_route_mesh_has_exact_needles_the_model_regions_and_supports(smooth, seg, site):
+    """`mesher="smooth"`: the segmentation's smooth conforming mesh with the pins and the clamp inserted
+    exactly. Every model region and support set is there, the pins' surface nodes lie on the cylinders to
+    1e-6 mm and the pins have the inscribed polygon's volume, the quality goals of the `mesh` route hold
+    (min dihedral >= 10 deg, 1st percentile >= 20), the supports lie on the crop's cut planes, and the bone
+    keeps its voxel volume within 3 %."""
+    from needletissue.geometry.tetmesh import tet_quality
+
+    m = smooth
+    assert set(m.regions) == {"hip_cortical", "hip_cancellous", "sacrum", "femur", "gluteus_maximus",
+                              "gluteus_medius", "gluteus_minimus", "iliopsoas", "body_wall", "adipose",
+                              "needle_1", "needle_2", "clamp"}
+    ids = np.concatenate(list(m.regions.values()))
+    assert np.array_equal(np.sort(ids), np.arange(len(m.cells)))
+    q = tet_quality(m.points, m.cells)
+    assert q["volume"].min() > 0
+    assert q["min_dihedral"].min() >= 10.0 and np.percentile(q["min_dihedral"], 1) >= 20.0
+    r = site.diameter / 2
+    for i, (b, t) in enumerate(m.needle_axes):
+        nodes = np.unique(m.cells[m.regions[f"needle_{i + 1}"]])
+        L = np.linalg.norm(t - b)
+        d = m.points[nodes] - b
+        rad = np.linalg.norm(d - np.outer(d @ ((t - b) / L), (t - b) / L), axis=1)
+        assert rad.max() < r + 1e-6 and np.count_nonzero(np.abs(rad - r) < 1e-6) > 0.5 * len(nodes)
+        assert 0.95 * np.pi * r * r * L < q["volume"][m.regions[f"needle_{i + 1}"]].sum() < np.pi * r * r * L
+    v = gp.crop_to_site(gp.segmentation_label_volume(seg), site)
+    lo, hi = v.bounds
+    assert np.allclose(m.points[m.surfaces["femur_fixed"].ravel(), 2], lo[2], atol=1e-6)
+    assert np.allclose(m.points[m.surfaces["midline"].ravel(), 0], lo[0], atol=1e-6)
+    bone = sum(q["volume"][m.regions[n]].sum() for n in ("hip_cortical", "hip_cancellous", "sacrum", "femur"))
+    assert bone == pytest.approx(np.isin(v.labels, (1, 2, 3)).sum() * v.spacing ** 3, rel=0.03)
+
+
+def test_solved_mesh_reports_its_quality_and_volumes(coarse, vol, site):
+    """The results' mesh quality: region volumes add up to the mesh volume, and the bones and the large
+    tissues keep their voxel volume within 10 % on the coarse mesh (tissue by smoothed centroid label)."""
+    from needletissue.geometry.tetmesh import tet_quality
+    from needletissue.models.pelvis.model import mesh_quality
+
+    q = mesh_quality(coarse, gp.crop_to_site(vol, site))
+    assert q["inverted"] == 0 and 0 < q["min_dihedral_deg"] <= q["p01_dihedral_deg"] < 70.5
+    total = tet_quality(coarse.points, coarse.cells)["volume"].sum()
+    solids = sum(tet_quality(coarse.points, coarse.cells[coarse.regions[n]])["volume"].sum()
+                 for n in ("needle_1", "needle_2", "clamp"))
+    assert sum(v for n, v in q["volume_mm3"].items() if n != "bone") == pytest.approx(total - solids, rel=1e-9)
+    for name in ("bone", "hip_bone", "sacrum", "femur", "iliopsoas", "adipose"):
+        assert abs(q["volume_error_vs_labels"][name]) < 0.10, (name, q["volume_error_vs_labels"])
+
+
 def test_quadratic_needles_have_the_cylinder_volume(coarse):
     """Straight-edged tets inscribe a polygon (coarse: ~5 sides, ~25 % area lost); with the midside
     nodes on the cylinder the tetra10 needle volume converges to pi r^2 L (2 % at 3 mm elements)."""
@@ -196,6 +280,12 @@ def test_bad_inputs_name_the_field():
         PelvisConfig(interfaces="glued")
     with pytest.raises(InputError, match="friction needle-muscle"):
         PelvisConfig(friction={"needle-muscle": -0.3})
+    with pytest.raises(InputError, match="mesher"):
+        PelvisConfig(mesher="gmsh")
+    with pytest.raises(InputError, match="mesher"):
+        PelvisConfig(mesher="smooth", source="ssm")
+    with pytest.raises(InputError, match="segmentation"):
+        PelvisConfig(segmentation="seg")              # a segment folder is meshed by the smooth mesher
     with pytest.raises(InputError, match="contact_dhat"):
         PelvisConfig(contact_dhat=0.0)
     for kw, field in ((dict(order=3), "order"), (dict(order=True), "order"),
@@ -269,6 +359,26 @@ def test_cli_rejects_bad_input(args, field):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ))
     assert r.returncode == 2, r.stderr
     assert field in r.stderr and "Traceback" not in r.stderr
+
+
+def test_cli_names_a_label_map_off_the_ct_grid_and_a_needle_missing_the_bone(tmp_path):
+    """Bad input reaches the user as one line naming the field, exit code 2: a label map on another grid
+    than the CT (--labels), and needle entries whose axis misses the hip bone (--config entries)."""
+    import nibabel as nib
+
+    src = gp.data_dir() / "pelvis_ct"
+    img = nib.load(src / "example_seg_fast_force_split.nii.gz")
+    bad = tmp_path / "labels.nii.gz"
+    nib.save(nib.Nifti1Image(np.asarray(img.dataobj)[:-2].astype(np.uint8), img.affine), bad)
+    far = tmp_path / "config.toml"
+    far.write_text("entries = [[400.0, 400.0, 900.0], [420.0, 400.0, 900.0]]\ndirection = [0.0, 0.0, 1.0]\n")
+    for args, field in ((["--ct", str(src / "example_ct.nii.gz"), "--labels", str(bad)], "labels"),
+                        (["--config", str(far)], "needle.entries[0]")):
+        code = (f"import sys; sys.argv = ['needletissue', 'fe', 'pelvis', *{args!r}];"
+                "from needletissue.cli import main; main()")
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ))
+        assert r.returncode == 2, r.stderr
+        assert field in r.stderr and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) <= 3
 
 
 def test_linear_order_coarse_solve_equilibrium():
@@ -345,14 +455,32 @@ def test_needle_interfaces_in_contact_are_more_compliant(tmp_path):
     assert np.linalg.norm(R + F) < 0.01 * 20.0, (R, F)
 
 
-def test_written_config_is_accepted_back(tmp_path, monkeypatch):
+class Stop(Exception):
+    pass
+
+
+@pytest.fixture
+def cli_config(monkeypatch):
+    """`fe pelvis` runs up to the model: the PelvisConfig it would run is appended to `seen`, then Stop."""
+    import needletissue.models.pelvis as pelvis_pkg
+
+    seen = []
+
+    def fake_run(config):
+        seen.append(config)
+        raise Stop
+
+    monkeypatch.setattr(pelvis_pkg, "run_pelvis_model", fake_run)
+    return seen, Stop
+
+
+def test_written_config_is_accepted_back(tmp_path, cli_config):
     """The config.toml `fe pelvis --out` writes (write_run_files of the PelvisConfig without `out`) is
     accepted back by `fe pelvis --config`: the same config; command-line options override the file."""
     from dataclasses import asdict
 
     from typer.testing import CliRunner
 
-    import needletissue.models.pelvis as pelvis_pkg
     from needletissue.cli import app
     from needletissue.models.pelvis import PelvisConfig
     from needletissue.runinfo import write_run_files
@@ -360,16 +488,7 @@ def test_written_config_is_accepted_back(tmp_path, monkeypatch):
     cfg = PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[50.0, 100.0], side="left",
                        friction={"needle-muscle": 0.3}, contact_dhat=0.2, figures=False, out=str(tmp_path))
     write_run_files(tmp_path, {k: v for k, v in asdict(cfg).items() if k != "out"}, {})
-    seen = []
-
-    class Stop(Exception):
-        pass
-
-    def fake_run(config):
-        seen.append(config)
-        raise Stop
-
-    monkeypatch.setattr(pelvis_pkg, "run_pelvis_model", fake_run)
+    seen, Stop = cli_config
     res = CliRunner().invoke(app, ["fe", "pelvis", "--config", str(tmp_path / "config.toml"), "--out", str(tmp_path)])
     assert isinstance(res.exception, Stop), res.output
     assert asdict(seen[-1]) == {**asdict(cfg), "progress": True}
@@ -379,6 +498,28 @@ def test_written_config_is_accepted_back(tmp_path, monkeypatch):
     got = seen[-1]
     assert got.mesh_size == 5.0 and got.needle_size == 3.0 and got.side == "left" and got.out is None
     assert got.friction == {"needle-muscle": 0.3, "bone-needle": 0.9}
+
+
+def test_cli_segmentation_folder_selects_the_smooth_mesher(tmp_path, cli_config):
+    """`fe pelvis --segmentation DIR` runs the smooth mesher on that `segment` folder; a folder without
+    tissues.nii.gz is one error line naming --segmentation (exit 2)."""
+    from typer.testing import CliRunner
+
+    from needletissue.cli import app
+
+    seen, Stop = cli_config
+    (tmp_path / "tissues.nii.gz").write_bytes(b"")
+    res = CliRunner().invoke(app, ["fe", "pelvis", "--segmentation", str(tmp_path), "--mesh-size", "6"])
+    assert isinstance(res.exception, Stop), res.output
+    assert seen[-1].mesher == "smooth" and seen[-1].segmentation == str(tmp_path) and seen[-1].mesh_size == 6.0
+    res = CliRunner().invoke(app, ["fe", "pelvis", "--mesher", "smooth"])
+    assert isinstance(res.exception, Stop) and seen[-1].mesher == "smooth" and seen[-1].segmentation is None
+    res = CliRunner().invoke(app, ["fe", "pelvis"])
+    assert isinstance(res.exception, Stop) and seen[-1].mesher == "box"
+    code = (f"import sys; sys.argv = ['needletissue', 'fe', 'pelvis', '--segmentation', {str(tmp_path / 'none')!r}];"
+            "from needletissue.cli import main; main()")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ))
+    assert r.returncode == 2 and "--segmentation" in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
 def test_a_run_stopped_while_writing_leaves_out_as_it_was(tmp_path, monkeypatch):

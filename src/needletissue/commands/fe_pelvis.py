@@ -16,6 +16,8 @@ def register(app, groups) -> None:
         ctx: typer.Context,
         ct: Path = typer.Option(None, "--ct", help="CT volume (NIfTI, HU). Default: the example CT in the data folder."),
         labels: Path = typer.Option(None, "--labels", help="Label map on the CT grid (TotalSegmentator ids)."),
+        segmentation: Path = typer.Option(None, "--segmentation", help="Folder written by `needletissue segment` "
+                                          "(with --labels): mesh it with --mesher smooth instead of --ct/--labels."),
         ssm: bool = typer.Option(False, "--ssm", help="Use the mean SSM bone surfaces (soft tissue by offsetting)."),
         force: list[float] = typer.Option(None, "--force", help="Reduction force on the clamp, N (repeat; "
                                           f"{FORCE_RANGE_HELP})."),
@@ -28,6 +30,10 @@ def register(app, groups) -> None:
                                           help="Needle element size, mm (default 2/3 of --mesh-size)."),
         far_size: float = typer.Option(None, "--far-size",
                                        help="Element size 35 mm and more from the needles, mm (default 4x --mesh-size)."),
+        mesher: str = typer.Option(None, "--mesher", help="box (the default: gmsh box with exact needles and clamp, "
+                                   "tissue by element centroid, graded) or smooth (CT: the `segment` + `mesh` "
+                                   "reconstruction with the needles and clamp inserted exactly; uniform --mesh-size; "
+                                   "the default with --segmentation)."),
         order: int = typer.Option(2, "--order", help="Element order: 2 (tetra10, curved needles) or 1 (linear "
                                                      "tets, the paper's; needs fine needles, see docs)."),
         needle_diameter: float = typer.Option(5.0, "--needle-diameter", help="Needle diameter, mm."),
@@ -72,9 +78,10 @@ def register(app, groups) -> None:
 
         cli = {"ssm": ("source", "ssm" if ssm else "ct"), "ct": ("ct", str(ct) if ct else None),
                "labels": ("labels", str(labels) if labels else None), "site": ("site", site),
+               "segmentation": ("segmentation", str(segmentation) if segmentation else None),
                "side": ("side", side), "mesh_size": ("mesh_size", mesh_size),
                "needle_size": ("needle_size", needle_size), "far_size": ("far_size", far_size),
-               "order": ("order", order), "needle_diameter": ("needle_diameter", needle_diameter),
+               "order": ("order", order), "mesher": ("mesher", mesher), "needle_diameter": ("needle_diameter", needle_diameter),
                "si_joint": ("si_joint", si_joint), "interfaces": ("interfaces", interfaces),
                "contact_dhat": ("contact_dhat", contact_dhat), "contact_eps_v": ("contact_eps_v", contact_eps_v)}
         kw.update(v for k, v in cli.items() if k in given)
@@ -86,6 +93,11 @@ def register(app, groups) -> None:
             kw["forces"] = list(force)
         kw.setdefault("forces", [100.0, 200.0, 300.0])
         kw["friction"] = {**kw.get("friction", {}), **parse_friction(friction or [])}
+        if segmentation is not None:
+            if not (segmentation / "tissues.nii.gz").is_file():
+                raise InputError("--segmentation", f"{segmentation}: no tissues.nii.gz (run `needletissue segment` first)")
+        if kw.get("mesher") is None:
+            kw["mesher"] = "smooth" if kw.get("segmentation") else "box"
         if kw.get("source", "ct") == "ct" and (kw.get("ct") is None) != (kw.get("labels") is None):
             raise InputError("--ct/--labels", "give both --ct and --labels (or neither for the example CT)")
         if out is not None:  # a file or an unwritable place: one error line now, not a traceback after the solve

@@ -182,6 +182,51 @@ def ct_label_volume(ct: str | Path | None = None, labels: str | Path | None = No
     return vol
 
 
+def segmentation_label_volume(seg, side: str = "right") -> LabelVolume:
+    """The model's LabelVolume (RAS, one hemipelvis) from a `needletissue segment` result (imaging.segment.
+    Segmentation with bones.nii.gz): hip / sacrum / femur of the chosen side from the bones image, the
+    side's four muscles, adipose, and other_soft_tissue as body_wall (all of it: the segmentation already
+    leaves organs out). The same label map the smooth mesher meshes, so site, paths and mesh agree."""
+    import SimpleITK as sitk
+
+    from needletissue.imaging.segment import BONE_IDS
+
+    if side not in CT_LABELS:
+        raise InputError("side", f"must be 'right' or 'left', got {side!r}")
+    if seg.bones is None:
+        raise InputError("segmentation", "has no bones.nii.gz: run `needletissue segment` with --labels (the model "
+                                         "needs hip bone, sacrum and femur apart)")
+    D = np.asarray(seg.labels.GetDirection(), float).reshape(3, 3)
+    sp = np.asarray(seg.labels.GetSpacing(), float)
+    if not np.allclose(np.abs(D), np.eye(3)) or not np.allclose(sp, sp[0], rtol=1e-3):
+        raise InputError("segmentation", f"needs an axis-aligned isotropic grid, got spacing {sp}")
+    flip = np.diag(D) * RAS_LPS < 0           # index axes along which RAS decreases: reversed
+    view = lambda img: np.flip(sitk.GetArrayFromImage(img).transpose(2, 1, 0), tuple(np.flatnonzero(flip)))  # noqa: E731
+    tis, bones = view(seg.labels), view(seg.bones)
+    lab = np.zeros(tis.shape, np.uint8)
+    ids = {n: i for i, n in TISSUES.items()}
+    for name, tid in (("hip_bone", f"hip_{side}"), ("sacrum", "sacrum"), ("femur", f"femur_{side}")):
+        lab[bones == BONE_IDS[tid]] = ids[name]
+    for name in ("gluteus_maximus", "gluteus_medius", "gluteus_minimus", "iliopsoas"):
+        for n in (f"{name}_{side}", name):
+            if n in seg.tissues:
+                lab[(tis == seg.tissues[n]) & (lab == 0)] = ids[name]
+    for n, name in (("adipose", "adipose"), ("other_soft_tissue", "body_wall")):
+        if n in seg.tissues:
+            lab[(tis == seg.tissues[n]) & (lab == 0)] = ids[name]
+    missing = [n for n in ("hip_bone", "sacrum", "femur", "gluteus_maximus", "gluteus_medius", "gluteus_minimus",
+                           "iliopsoas", "adipose") if not np.any(lab == ids[n])]
+    if missing:
+        raise InputError("segmentation", f"has no {', '.join(missing)} on the {side} side; the model needs every "
+                                         "one of them")
+    first = np.where(flip, np.array(tis.shape) - 1, 0)
+    origin = np.asarray(seg.labels.TransformContinuousIndexToPhysicalPoint(first.astype(float).tolist())) * RAS_LPS
+    lab, origin, _ = _crop_hemipelvis(lab, origin, float(sp[0]), side)
+    vol = LabelVolume(lab, origin, float(sp[0]), side, f"segmentation:{seg.source or 'in memory'}")
+    vol.notes.append("labels from the segmentation (imaging.segment): body_wall = its other_soft_tissue")
+    return vol
+
+
 def ssm_label_volume(side: str = "right", spacing: float = 2.0, muscle_mm: float = 22.0,
                      adipose_mm: float = 10.0) -> LabelVolume:
     """Tissue labels around the mean SSM hip bone and sacrum (bone surfaces only).
@@ -447,6 +492,8 @@ class PelvisMesh:
     clamp_frame: np.ndarray  # rows e1 (along the bar), e2, e3 (needle axis, outwards); mm
     needle_axes: list  # [(bottom point in bone, top point in clamp)]
     notes: list = field(default_factory=list)
+    info: dict = field(default_factory=dict)  # how the mesh was built (smooth route: mesh_info)
+    label_volumes: dict | None = None  # region -> voxel volume (mm^3) of the label map it was meshed from
 
     def to_meshio(self):
         """meshio mesh with gmsh physical groups named as the regions and surfaces."""
@@ -480,6 +527,23 @@ def _frame(axis, across):
     return np.array([e1, np.cross(e3, e1), e3])
 
 
+def _needles_and_clamp(site: NeedleSite, paths):
+    """(clamp frame, centre of the clamp's bottom face, needle axes [(bottom in bone, top in the clamp)], bar
+    length): the clamp bottom lies clamp_gap beyond the farthest skin exit along the axis (measured from the
+    first entry); the needles run depth_in_bone into the bone and through the clamp bar."""
+    a = -site.direction  # outwards
+    reach = max(float((p.skin_exit - site.entries[0]) @ a) for p in paths)
+    frame = _frame(a, site.entries[1] - site.entries[0])
+    mid = site.entries.mean(axis=0)
+    c_bottom = mid + (reach + site.clamp_gap - float((mid - site.entries[0]) @ a)) * a
+    axes = []
+    for e in site.entries:
+        top_t = float((c_bottom - e) @ a) + site.clamp_size[0]
+        axes.append((e - site.depth_in_bone * a, e + top_t * a))
+    span = float(abs((site.entries[1] - site.entries[0]) @ frame[0]))
+    return frame, c_bottom, axes, span + 2 * site.clamp_overhang
+
+
 def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needle_size: float | None = None,
                far_size: float | None = None, cortical_thickness: float = 1.5, refine_radius: float = 35.0,
                sacroiliac_gap: float | None = None, smoothing: float = 0.7, threads: int = 1) -> PelvisMesh:
@@ -500,21 +564,9 @@ def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needl
     check_number("cortical_thickness", cortical_thickness, gt=0, le=10)
     sacroiliac_gap = 1.5 * vol.spacing if sacroiliac_gap is None else sacroiliac_gap
     paths = needle_paths(vol, site)
-    a = -site.direction  # outwards
     r = site.diameter / 2
-    # Clamp bottom: clamp_gap beyond the farthest skin exit along the axis (measured from the first entry).
-    reach = max(float((p.skin_exit - site.entries[0]) @ a) for p in paths)
+    frame, c_bottom, axes, bar_len = _needles_and_clamp(site, paths)
     h_clamp, w_clamp = site.clamp_size
-    frame = _frame(a, site.entries[1] - site.entries[0])
-    mid = site.entries.mean(axis=0)
-    c_bottom = mid + (reach + site.clamp_gap - float((mid - site.entries[0]) @ a)) * a
-    axes = []
-    for e in site.entries:
-        bottom = e - site.depth_in_bone * a
-        top_t = float((c_bottom - e) @ a) + h_clamp  # needle runs through the clamp bar
-        axes.append((bottom, e + top_t * a))
-    span = float(abs((site.entries[1] - site.entries[0]) @ frame[0]))
-    bar_len = span + 2 * site.clamp_overhang
 
     lo, hi = vol.bounds
     from needletissue.geometry.gmsh_init import initialize  # keeps the SIGTERM handler
@@ -775,3 +827,143 @@ def _straighten_inverted(pts: np.ndarray, straight: np.ndarray, cells: np.ndarra
         pts[nodes] = straight[nodes]
         moved[nodes] = False
     return pts
+
+
+def needle_solids(axes, radius: float, clamp_frame, clamp_bottom, clamp_size, bar_len: float,
+                  size: float, names=("needle_1", "needle_2", "clamp"), margin: float | None = None):
+    """The needles (cylinders of `radius` along `axes` [(bottom, top)]) and the clamp bar (rows of
+    `clamp_frame`: along the bar, across, along the needles; bottom face centred at `clamp_bottom`, height x
+    width `clamp_size`, length `bar_len`) as one conforming triangle set (gmsh OCC fragment: the needles
+    run through the bar and share its faces) with triangles of about `size` mm: smooth.Solids for the
+    smooth route. Coordinates in whatever frame the inputs are in. The needles win where they overlap the
+    bar (a pin through a hole)."""
+    import gmsh
+
+    from needletissue.geometry.smooth import Solids
+
+    axes = [(np.asarray(b, float), np.asarray(t, float)) for b, t in axes]
+    frame, c0 = np.asarray(clamp_frame, float), np.asarray(clamp_bottom, float)
+    h, w = clamp_size
+    from needletissue.geometry.gmsh_init import initialize  # keeps the SIGTERM handler
+
+    initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("needle_solids")
+        occ = gmsh.model.occ
+        cyl = [occ.addCylinder(*b, *(t - b), radius) for b, t in axes]
+        clamp = occ.addBox(-bar_len / 2, -w / 2, 0.0, bar_len, w, h)
+        occ.affineTransform([(3, clamp)], list(np.column_stack([*frame, c0]).ravel()))
+        occ.fragment([(3, c) for c in cyl], [(3, clamp)])
+        occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMax", size)
+        gmsh.option.setNumber("Mesh.MeshSizeMin", 0.25 * size)
+        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 12)   # >= 12 sides around a pin
+        gmsh.model.mesh.generate(2)
+        tags, xyz, _ = gmsh.model.mesh.getNodes()
+        _, tri = gmsh.model.mesh.getElementsByType(2)
+    finally:
+        gmsh.finalize()
+    index = np.zeros(int(tags.max()) + 1, np.int64)
+    index[tags.astype(np.int64)] = np.arange(len(tags))
+    faces = index[tri.astype(np.int64)].reshape(-1, 3)
+    used, inv = np.unique(faces, return_inverse=True)
+    points = xyz.reshape(-1, 3)[used]
+    faces = inv.reshape(-1, 3)
+
+    def label(p, grow=0.0):
+        p = np.asarray(p, float)
+        out = np.full(len(p), -1)
+        q = (p - c0) @ frame.T   # clamp frame coordinates
+        box = (np.abs(q[:, 0]) <= bar_len / 2 + grow) & (np.abs(q[:, 1]) <= w / 2 + grow) \
+            & (q[:, 2] >= -grow) & (q[:, 2] <= h + grow)
+        out[box] = len(axes)
+        for i, (b, t) in enumerate(axes):   # the pins win inside the bar
+            L = np.linalg.norm(t - b)
+            a = (t - b) / L
+            s = (p - b) @ a
+            r = np.linalg.norm((p - b) - s[:, None] * a, axis=1)
+            out[(r <= radius + grow) & (s >= -grow) & (s <= L + grow)] = i
+        return out
+
+    return Solids(names=list(names), points=points, faces=faces, label=label,
+                  margin=float(margin if margin is not None else radius))
+
+
+RAS_LPS = np.array([-1.0, -1.0, 1.0])  # RAS <-> LPS: x and y negated (a rotation by pi about z: orientation kept)
+# the segmentation's tissues (imaging.segment) -> the model's regions; bone is split by bone below
+SEG_REGIONS = {"adipose": "adipose", "other_soft_tissue": "body_wall"}
+
+
+def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0,
+                      needle_size: float | None = None, sacroiliac_gap: float | None = None,
+                      margin_voxels: float = 1.5) -> PelvisMesh:
+    """The model's mesh through the `segment` + `mesh` reconstruction (geometry.smooth: smooth shared tissue
+    interfaces, TetGen, optimised elements, cortex by volume) with the needles and the clamp inserted exactly.
+
+    seg: imaging.segment.Segmentation of the same CT (LPS); vol: the cropped LabelVolume (RAS) that gives
+    the crop box, the needle site and paths and the bone of each bone element (hip / sacrum / femur).
+    mesh_size: the smooth route's element size (label maps finer than it are coarsened); needle_size:
+    triangles on the needles and clamp (default 2*mesh_size/3). Tissue regions are the mesh's own region
+    tags; within margin_voxels (coarse) voxels of the needles and the clamp the tissue is the voxel at the
+    element's centroid (the corridor in which the exact solids are inserted)."""
+    from scipy import ndimage
+
+    from needletissue.geometry.tetmesh import MeshConfig, _crop_and_coarsen, tet_mesh
+
+    check_number("mesh_size", mesh_size, ge=0.5, le=20)
+    needle_size = 2 * mesh_size / 3 if needle_size is None else check_number("needle_size", needle_size, ge=0.2, le=10)
+    sacroiliac_gap = 1.5 * vol.spacing if sacroiliac_gap is None else sacroiliac_gap
+    paths = needle_paths(vol, site)
+    frame, c_bottom, axes, bar_len = _needles_and_clamp(site, paths)
+    r = site.diameter / 2
+    coarse = vol.spacing * max(1, int(np.floor(mesh_size / vol.spacing + 1e-9)))
+    solids = needle_solids([(b * RAS_LPS, t * RAS_LPS) for b, t in axes], r, frame * RAS_LPS, c_bottom * RAS_LPS,
+                           site.clamp_size, bar_len, needle_size, margin=r + margin_voxels * coarse)
+    lo, hi = vol.bounds
+    inset = 0.6 * vol.spacing  # inside the first / last voxel: the crop takes exactly the volume's voxels
+    box = (-(hi[0] - inset), -(lo[0] + inset), -(hi[1] - inset), -(lo[1] + inset), lo[2] + inset, hi[2] - inset)
+    tm = tet_mesh(seg, config=MeshConfig(size=mesh_size, crop=box, method="smooth"), solids=solids)
+    pts = tm.points * RAS_LPS
+    names = np.empty(len(tm.cells), object)
+    for n, ids in tm.regions.items():
+        base = n.removesuffix("_left").removesuffix("_right")
+        names[ids] = SEG_REGIONS.get(base, base)
+    # bone elements: the bone of the nearest bone voxel of the label volume at the centroid
+    isbone = np.isin(vol.labels, (1, 2, 3))
+    near = ndimage.distance_transform_edt(~isbone, return_distances=False, return_indices=True)
+    bone = np.flatnonzero(np.isin(names, ("cortical_bone", "cancellous_bone")))
+    ijk = np.clip(np.rint(vol.index(pts[tm.cells[bone]].mean(1))).astype(int), 0, np.array(vol.labels.shape) - 1)
+    which = vol.labels[tuple(near[:, ijk[:, 0], ijk[:, 1], ijk[:, 2]])]
+    hip = which == 1
+    names[bone[hip]] = np.where(names[bone[hip]] == "cortical_bone", "hip_cortical", "hip_cancellous")
+    names[bone[which == 2]] = "sacrum"
+    names[bone[which == 3]] = "femur"
+    order = ["hip_cortical", "hip_cancellous", "sacrum", "femur", "gluteus_maximus", "gluteus_medius",
+             "gluteus_minimus", "iliopsoas", "body_wall", "adipose", "needle_1", "needle_2", "clamp"]
+    other = sorted(set(names) - set(order))
+    if other:
+        raise InputError("labels", f"tissue(s) the model has no material for: {', '.join(other)}")
+    regions = {n: np.flatnonzero(names == n) for n in order if np.any(names == n)}
+    surfaces = _surfaces(pts, tm.cells, names, vol, frame, c_bottom, site.clamp_size[1], sacroiliac_gap)
+    notes = list(vol.notes) + [
+        f"mesh: the `segment` + `mesh` route (smooth shared interfaces, TetGen, cortex by volume) at size "
+        f"{mesh_size} mm with the needles and the clamp inserted exactly (triangles {needle_size:.2f} mm); tissue "
+        f"within {margin_voxels} voxels of them by the voxel at the element centroid",
+        "segmentation: imaging.segment (other_soft_tissue -> body_wall; bone elements hip / sacrum / femur by "
+        "the nearest bone voxel of the label map)",
+    ]
+    # the label map's volumes in the model's names: soft tissue from the segmentation (the same crop, not
+    # coarsened), bones from the label volume (both are the label map's bone voxels)
+    seg_arr = _crop_and_coarsen(seg, MeshConfig(size=vol.spacing, crop=box, coarsen=False))[0]
+    counts = np.bincount(seg_arr.ravel(), minlength=256) * vol.spacing ** 3
+    label = {}
+    for n, i in seg.tissues.items():
+        base = n.removesuffix("_left").removesuffix("_right")
+        if base in SEG_REGIONS or base in regions:
+            label[SEG_REGIONS.get(base, base)] = label.get(SEG_REGIONS.get(base, base), 0.0) + float(counts[i])
+    bones = np.bincount(vol.labels.ravel(), minlength=4) * vol.spacing ** 3
+    label.update({"hip_bone": float(bones[1]), "sacrum": float(bones[2]), "femur": float(bones[3])})
+    out = PelvisMesh(pts, tm.cells, regions, surfaces, site, paths, frame, axes, notes, tm.info,
+                     {k: v for k, v in label.items() if v > 0})
+    return out

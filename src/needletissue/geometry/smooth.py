@@ -145,6 +145,27 @@ class InterfaceSurfaces:
     info: dict = field(default_factory=dict)
 
 
+@dataclass
+class Solids:
+    """Closed solids (needles, clamp) meshed exactly into the smooth route, LPS mm.
+
+    points, faces: ONE conforming triangle set of all their surfaces (faces shared by two solids listed
+    once), at the element size wanted on them. label(points, grow) -> index into names of the solid
+    holding each point when every solid is grown by `grow` mm, -1 outside all. The label map is replaced by
+    a corridor within `margin` mm of the solids (its smoothed wall stays clear of them); the corridor
+    elements outside the solids take the tissue of the voxel at their centroid after the optimisation."""
+
+    names: list
+    points: np.ndarray
+    faces: np.ndarray
+    label: object
+    margin: float
+
+
+CORRIDOR = 255      # label of the corridor around the solids while meshing
+SOLID0 = 240        # label of the first solid while meshing
+
+
 def label_volumes(points, faces, boundary_labels, n_labels: int = 256) -> np.ndarray:
     """Volume enclosed by each label's interfaces (surface-nets faces point out of boundary_labels[:, 0])."""
     v = np.einsum("ij,ij->i", points[faces[:, 0]], np.cross(points[faces[:, 1]], points[faces[:, 2]])) / 6.0
@@ -192,8 +213,12 @@ def restore_volumes(points, faces, boundary_labels, target, fixed, iterations: i
 
 
 def smooth_interfaces(arr: np.ndarray, spacing, *, iterations: int = 16, scale: float = 0.3,
-                      relaxation: float = 0.5, max_repair: int = 12, restore: bool = True) -> InterfaceSurfaces:
-    """Surface nets of a label array (z, y, x), constrained smoothing, intersections repaired."""
+                      relaxation: float = 0.5, max_repair: int = 12, restore: bool = True,
+                      flat=None) -> InterfaceSurfaces:
+    """Surface nets of a label array (z, y, x), constrained smoothing, intersections repaired.
+
+    flat: (lo, hi) voxel index ranges (x, y, z) whose border planes stay flat (default: the array's; a
+    padded array passes its crop's)."""
     import pyvista as pv
     from scipy.spatial import cKDTree
 
@@ -230,8 +255,8 @@ def smooth_interfaces(arr: np.ndarray, spacing, *, iterations: int = 16, scale: 
     edges = unique_edges(faces)
     # vertices on the image / crop border planes stay put: the cut faces stay flat and its corners sharp
     idx = x0 / sp
-    top = np.asarray(arr.shape[::-1], float) - 0.5
-    on_border = np.any(np.isclose(idx, -0.5) | np.isclose(idx, top), axis=1)
+    lo, hi = (np.zeros(3), np.asarray(arr.shape[::-1], float)) if flat is None else np.asarray(flat, float)
+    on_border = np.any(np.isclose(idx, lo - 0.5) | np.isclose(idx, hi - 0.5), axis=1)
     w = np.where(on_border | pinched, 0.0, 1.0)
     vol0 = label_volumes(x0, faces, bl)   # = the voxel volumes (raw faces are voxel faces)
     vol_s = label_volumes(x1, faces, bl)
@@ -572,7 +597,7 @@ RING_TRIANGULATIONS = {n: _triangulations(n) for n in range(3, 8)}   # 1, 2, 5, 
 
 
 def remove_slivers(points, cells, tag, target_deg: float = 12.0, max_shift: float = 0.0, passes: int = 8,
-                   samples: int = 48, seed: int = 0):
+                   samples: int = 48, seed: int = 0, pinned=None, frozen=()):
     """Topological sliver removal on a multi-region mesh of positive tetrahedra; worst elements first,
     for every element whose smallest dihedral angle is below `target_deg`, the best of:
     - a 2-3 face flip or an edge removal (the n tetrahedra around an edge -> the best of the 2n - 4
@@ -586,7 +611,9 @@ def remove_slivers(points, cells, tag, target_deg: float = 12.0, max_shift: floa
     - else collapsing an edge no longer than `max_shift` (link condition checked; the nodes merge at one
       end or the middle, so an interface moves by at most that length).
     An operation is kept only if the worst new element beats the worst one it replaces (all positive),
-    so the minimum angle never drops. Returns (points, cells, tag, number of operations), nodes compacted."""
+    so the minimum angle never drops. Nodes in `pinned` are never collapsed and elements of a tag in `frozen`
+    never change tag nor give theirs (exact solids keep their surfaces).
+    Returns (points, cells, tag, number of operations), nodes compacted."""
     from itertools import combinations
 
     x = np.array(points, float)
@@ -718,7 +745,7 @@ def remove_slivers(points, cells, tag, target_deg: float = 12.0, max_shift: floa
         a = [int(w) for w in C[t]]
         best = (0.0, None)
         for u, v in combinations(a, 2):
-            if np.linalg.norm(x[u] - x[v]) > max_shift:
+            if np.linalg.norm(x[u] - x[v]) > max_shift or pin(u) or pin(v):
                 continue
             su, sv = star(u), star(v)
             both = su & sv
@@ -747,6 +774,9 @@ def remove_slivers(points, cells, tag, target_deg: float = 12.0, max_shift: floa
                     best = (g, old, new, u, pos, q, T[keep])
         return best
 
+    pinned0 = np.zeros(n_x, bool) if pinned is None else np.asarray(pinned, bool)
+    pin = lambda v: v < len(pinned0) and pinned0[v]  # noqa: E731  (new nodes are never pinned)
+    frozen = set(frozen)
     n_ops = 0
     for _ in range(passes):
         bad = np.flatnonzero(alive[:size] & (md[:size] < target_deg))
@@ -760,7 +790,7 @@ def remove_slivers(points, cells, tag, target_deg: float = 12.0, max_shift: floa
             tags = [own]
             P = x[C[t]]
             area = max(np.linalg.norm(np.cross(P[(k + 1) % 4] - P[k], P[(k + 2) % 4] - P[k])) for k in range(4)) / 2
-            if max_shift > 0 and 3 * abs(vol_min_dihedral(P)[0]) / area <= max_shift:
+            if max_shift > 0 and own not in frozen and 3 * abs(vol_min_dihedral(P)[0]) / area <= max_shift:
                 a = [int(w) for w in C[t]]
                 faces = [[a[j] for j in range(4) if j != k] for k in range(4)]
                 free = [k for k in range(4) if len(face_elems(faces[k])) == 1]
@@ -771,7 +801,7 @@ def remove_slivers(points, cells, tag, target_deg: float = 12.0, max_shift: floa
                         cand.append(([t], np.zeros((0, 4), np.int64), own))
                 for f in faces:                  # give it to a neighbour tissue, then flip
                     for u in face_elems(f) - {t}:
-                        if T[u] not in tags:
+                        if T[u] not in tags and T[u] not in frozen:
                             tags.append(T[u])
                             T[t] = T[u]
                             cand += [(o, nw, T[u]) for o, nw in flips(t)]
@@ -834,8 +864,51 @@ SLIVER_TARGET = 13.0        # degrees; remove_slivers works on elements below th
 SLIVER_SHIFT = 1 / 3        # x voxel: a flat element this thin may change tissue (its interface moves that much)
 
 
-def smooth_tet_mesh(seg, cfg):
-    """TetMesh with smooth, conforming tissue interfaces (module docstring); cfg: tetmesh.MeshConfig."""
+def _pad_for_solids(seg, arr, start, f, solids):
+    """Zero-pad the (cropped, coarsened) label array so that the solids and their corridor fit inside it
+    (no more). Returns (arr, start, the crop's voxel index ranges (x, y, z) in it or None: its cut faces
+    stay flat)."""
+    D = np.asarray(seg.labels.GetDirection(), float).reshape(3, 3)
+    sp0 = np.asarray(seg.labels.GetSpacing(), float)
+    idx = (np.asarray(solids.points, float) - np.asarray(seg.labels.GetOrigin(), float)) @ D / sp0  # (x, y, z)
+    m = solids.margin / (sp0 * f) + 0.5
+    lo = np.floor((idx.min(0) - start) / f - (f - 1) / (2 * f) - m).astype(int)
+    hi = np.ceil((idx.max(0) - start) / f + m).astype(int) + 1
+    shape = np.asarray(arr.shape[::-1])
+    pad_lo, pad_hi = np.maximum(-lo, 0), np.maximum(hi - shape, 0)
+    if not (pad_lo.any() or pad_hi.any()):
+        return arr, start, None
+    arr = np.pad(arr, list(zip(pad_lo[::-1], pad_hi[::-1])))
+    return arr, np.asarray(start) - pad_lo * f, (pad_lo, pad_lo + shape)
+
+
+def _largest_body(cells, tag):
+    """The face-connected component with the most elements (corridor elements labelled by centroid can
+    leave a tissue element touching the rest at an edge only)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from needletissue.geometry.tetmesh import face_pairs
+
+    *_, two = face_pairs(cells, tag, pairs=True)
+    a, b = two[:, 0] % len(cells), two[:, 1] % len(cells)
+    _, comp = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(len(cells),) * 2), directed=False)
+    keep = comp == np.argmax(np.bincount(comp))
+    return cells[keep], tag[keep]
+
+
+def _grid_centres(arr, sp):
+    """Grid coordinates (index * spacing, x y z) of every voxel of a (z, y, x) array, in array order."""
+    k, j, i = np.meshgrid(*[np.arange(n) for n in arr.shape], indexing="ij")
+    return np.stack([i.ravel(), j.ravel(), k.ravel()], 1) * sp
+
+
+def smooth_tet_mesh(seg, cfg, solids: Solids | None = None):
+    """TetMesh with smooth, conforming tissue interfaces (module docstring); cfg: tetmesh.MeshConfig.
+
+    solids: closed solids (needles, clamp) meshed exactly: their triangles join the interface set inside a
+    corridor cut from the label map, their elements form regions named after them, their surface nodes
+    never move (Solids)."""
     import time
 
     from needletissue.geometry.tetmesh import (TetMesh, _crop_and_coarsen, _grid_frame, bone_surfaces_by_bone, face_pairs, interface_surfaces,
@@ -845,18 +918,34 @@ def smooth_tet_mesh(seg, cfg):
     t0 = time.perf_counter()
     cpu = [time.process_time()]
     arr, start, f, names = _crop_and_coarsen(seg, cfg)
+    flat = None
+    if solids is not None:
+        arr, start, flat = _pad_for_solids(seg, arr, start, f, solids)
     sp, to_phys = _grid_frame(seg, arr, start, f)
     bone_ids = [seg.tissues[n] for n in BONE if n in names]
     work = arr.copy()
     if len(bone_ids) > 1:
         work[np.isin(work, bone_ids)] = bone_ids[-1]   # one bone region: its outer surface is the interface
-    surf = smooth_interfaces(work, sp, iterations=cfg.smoothing_iterations, scale=cfg.smoothing_scale)
+    tissue = work
+    if solids is not None:
+        tissue = work.copy()
+        near = solids.label(to_phys(_grid_centres(work, sp)), solids.margin) >= 0
+        work[near.reshape(work.shape)] = CORRIDOR
+    surf = smooth_interfaces(work, sp, iterations=cfg.smoothing_iterations, scale=cfg.smoothing_scale, flat=flat)
+    plc_points, plc_faces = surf.points, surf.faces
+    if solids is not None:   # the exact solid surfaces inside the corridor: same PLC, no Boolean needed
+        plc_points = np.vstack([surf.points, to_phys.inverse(solids.points)])
+        plc_faces = np.vstack([surf.faces, np.asarray(solids.faces, np.int64) + len(surf.points)])
+        e, _ = edge_face_crossings(plc_points, plc_faces)
+        if len(e):
+            raise InputError("solids", f"{len(e)} edge(s) of the solids cross the tissue interfaces: the "
+                             f"corridor margin ({solids.margin} mm) is too small for this voxel size")
     t1 = time.perf_counter()
     cpu.append(time.process_time())
     bound = cfg.max_volume
     if bound is None and cfg.size < 0.999 * sp.min():
         bound = regular_tet_volume(cfg.size)
-    nodes, elem, attr = _tetgen(surf.points, surf.faces, cfg, bound)
+    nodes, elem, attr = _tetgen(plc_points, plc_faces, cfg, bound)
     t2 = time.perf_counter()
     cpu.append(time.process_time())
     # tissue per TetGen subdomain: volume-weighted majority of the labels at its tetrahedra's centroids
@@ -870,6 +959,16 @@ def smooth_tet_mesh(seg, cfg):
     np.add.at(votes, (sub, lab_c), vol)
     sub_label = votes.argmax(1)
     purity = votes.max(1).sum() / votes.sum()
+    if solids is not None:   # a subdomain mostly inside a solid is that solid
+        sid = solids.label(to_phys(cen), 0.0)
+        inside_vol = np.zeros((len(sub_ids), len(solids.names) + 1))
+        np.add.at(inside_vol, (sub, sid + 1), vol)
+        k = inside_vol.argmax(1)
+        is_solid = (k > 0) & (inside_vol.max(1) > 0.5 * inside_vol.sum(1))
+        sub_label[is_solid] = SOLID0 + k[is_solid] - 1
+        missing = [n for i, n in enumerate(solids.names) if not np.any(sub_label == SOLID0 + i)]
+        if missing:
+            raise InputError("solids", f"no subdomain for {', '.join(missing)}: not closed or outside the crop")
     tag = sub_label[sub]
     inside = tag > 0
     elem, tag = elem[inside], tag[inside]
@@ -896,11 +995,25 @@ def smooth_tet_mesh(seg, cfg):
     tb = np.where(partner[bnd] >= 0, tag[partner[bnd] % n_c], -1)     # -1: free boundary
     group = np.minimum(ta, tb) * 1000 + np.maximum(ta, tb)             # one id per interface / boundary
     slide = sliding_normals(nodes, faces[bnd], group, SLIDE_MAX_DEVIATION) if SLIDE else None
+    frozen = [SOLID0 + i for i in range(len(solids.names))] if solids is not None else []
+    pinned = np.zeros(len(nodes), bool)
+    pinned[np.unique(cells[np.isin(tag, frozen)])] = True
+    pinned &= fixed                                   # the solids' surface nodes: exact, never moved
+    if slide is not None:
+        slide[pinned] = np.nan
     nodes, n_moved = relocate_nodes(nodes, cells, fixed, target_deg=RELOCATE_TARGET, slide=slide)
     t5 = time.perf_counter()
     cpu.append(time.process_time())
     # what relocation leaves below the goal sits on interfaces (caps at an interface edge): flips, splits
-    nodes, cells, tag, n_ops = remove_slivers(nodes, cells, tag, SLIVER_TARGET, SLIVER_SHIFT * float(sp.min()))
+    nodes, cells, tag, n_ops = remove_slivers(nodes, cells, tag, SLIVER_TARGET, SLIVER_SHIFT * float(sp.min()),
+                                              pinned=pinned, frozen=frozen)
+    if solids is not None:   # corridor elements outside the solids: the tissue at the centroid; air dropped
+        cor = np.flatnonzero(tag == CORRIDOR)
+        ijk = np.clip(np.floor(nodes[cells[cor]].mean(1) / sp + 0.5).astype(int), 0, shape - 1)
+        tag[cor] = tissue[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+        cells, tag = _largest_body(cells[tag > 0], tag[tag > 0])
+        used, inv = np.unique(cells, return_inverse=True)
+        nodes, cells = nodes[used], inv.reshape(cells.shape)
     split_info = {}
     if len(bone_ids) > 1:
         # cortical / cancellous per tetrahedron, after the optimisation: the split is a rule, no interface,
@@ -916,6 +1029,8 @@ def smooth_tet_mesh(seg, cfg):
     regions = {n: np.flatnonzero(tag == seg.tissues[n]) for n in names}
     regions = {n: ids for n, ids in regions.items() if len(ids)}
     lost = [n for n in names if n not in regions]
+    for i, n in enumerate(solids.names if solids is not None else []):
+        regions[n] = np.flatnonzero(tag == SOLID0 + i)
     if lost and cfg.regions is not None:
         raise InputError("regions", f"tissue(s) lost by the smooth mesh: {', '.join(lost)}")
     mesh = TetMesh(points=points, cells=cells, regions=regions,

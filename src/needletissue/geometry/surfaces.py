@@ -36,6 +36,7 @@ def image_to_pyvista(labels_img, array: np.ndarray | None = None):
         return o + np.asarray(points, float) @ d.T
 
     to_physical.flips = np.linalg.det(d) < 0  # orientation of triangles/tets must be flipped
+    to_physical.inverse = lambda x: (np.asarray(x, float) - o) @ d  # LPS mm -> grid coordinates
     return grid, to_physical
 
 

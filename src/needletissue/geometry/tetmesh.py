@@ -292,14 +292,15 @@ def _grid_frame(seg, arr, start, f):
     return np.asarray(seg.labels.GetSpacing(), float) * f, to_phys
 
 
-def tet_mesh(seg, size: float = 3.0, config: MeshConfig | None = None, **kw) -> TetMesh:
+def tet_mesh(seg, size: float = 3.0, config: MeshConfig | None = None, solids=None, **kw) -> TetMesh:
     """Conforming multi-region tetrahedral mesh of a Segmentation (tissues -> named regions).
 
     Size control: label maps finer than `size` (mm) are coarsened by a block majority, so interface
     triangles have edges of about `size`; inside, TetGen grades the elements under its quality bound.
     When `size` is below the voxel spacing (or `max_volume` is given) the tetrahedron volume is bounded
     by that of a regular tetrahedron of edge `size` (mean edge then about 0.9 `size`). Extra solids
-    (needles, clamp) enter by painting their label into the label map first (geometry.solids).
+    (needles, clamp) enter exactly as `solids` (smooth.Solids, method "smooth"), or painted into the label
+    map first (geometry.solids; voxel staircases).
     """
     import tetgen
 
@@ -311,7 +312,9 @@ def tet_mesh(seg, size: float = 3.0, config: MeshConfig | None = None, **kw) -> 
     if cfg.method == "smooth":
         from needletissue.geometry.smooth import smooth_tet_mesh
 
-        return smooth_tet_mesh(seg, cfg)
+        return smooth_tet_mesh(seg, cfg, solids)
+    if solids is not None:
+        raise InputError("method", "exact solids (needles, clamp) need method 'smooth'")
     arr, start, f, names = _crop_and_coarsen(seg, cfg)
     sp, to_phys = _grid_frame(seg, arr, start, f)
     grid, _ = image_to_pyvista(_sub_image(seg, arr, start, f), arr)

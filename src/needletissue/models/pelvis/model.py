@@ -73,6 +73,13 @@ class PelvisConfig:
     mesh_size       soft-tissue element size next to the needles, mm (paper: 3)
     needle_size     needle element size, mm (default 2*mesh_size/3; quadratic tets)
     far_size        element size far (refine_radius) from the needles, mm (default 4*mesh_size)
+    mesher          "box" (gmsh box fragmented with the needles and the clamp, tissue per element by its
+                    smoothed centroid label; graded around the needles) or "smooth" (CT only: the `segment` +
+                    `mesh` reconstruction, geometry.smooth, with the needles and the clamp inserted exactly;
+                    uniform size mesh_size, the label map coarsened to it; needle_size on the solids). With
+                    "smooth" the site, paths and crop come from the same segmentation (segmentation_label_volume)
+    segmentation    folder written by `needletissue segment` (tissues.nii.gz, bones.nii.gz): the label map of
+                    the smooth mesher instead of segmenting ct + labels again
     order           2 (tetra10, curved needle surfaces; the default) or 1 (linear tets: the paper's element
                     type, for the paper-scale run of benchmarks/paper_scale_pelvis.py; stiffer in bending,
                     so it needs fine needles, and the needles stay inscribed polygons)
@@ -87,6 +94,7 @@ class PelvisConfig:
     source: str = "ct"
     ct: str | None = None
     labels: str | None = None
+    segmentation: str | None = None  # a `needletissue segment` folder (mesher "smooth"): instead of ct + labels
     side: str = "right"
     site: str = "supra_acetabular"
     entries: list | None = None
@@ -103,6 +111,7 @@ class PelvisConfig:
     refine_radius: float = 35.0
     cortical_thickness: float = 1.5
     ssm_spacing: float = 2.0
+    mesher: str = "box"
     order: int = 2
     formulation: str = "mixed"
     tissue_bulk_ratio: float | None = None  # K/mu0 of the tissue; None: the materials' K
@@ -122,6 +131,12 @@ class PelvisConfig:
             raise InputError("source", f"must be 'ct' or 'ssm', got {self.source!r}")
         if self.si_joint not in ("fixed", "bonded"):
             raise InputError("si_joint", f"must be 'fixed' or 'bonded', got {self.si_joint!r}")
+        if self.mesher not in ("box", "smooth"):
+            raise InputError("mesher", f"must be 'box' or 'smooth', got {self.mesher!r}")
+        if self.mesher == "smooth" and self.source != "ct":
+            raise InputError("mesher", "'smooth' meshes the CT's segmentation: use source 'ct' (or mesher 'box')")
+        if self.segmentation is not None and (self.mesher != "smooth" or self.ct or self.labels):
+            raise InputError("segmentation", "a `segment` folder is meshed by mesher 'smooth', instead of ct/labels")
         if self.interfaces not in ("bonded", "paper"):
             raise InputError("interfaces", f"must be 'bonded' or 'paper', got {self.interfaces!r}")
         for name, mu in self.friction.items():
@@ -194,7 +209,18 @@ def build(config: PelvisConfig):
     """Labels, needle site and the linear conforming mesh for `config` (geometry.pelvis.PelvisMesh)."""
     from needletissue.geometry import pelvis as gp
 
-    if config.source == "ct":
+    seg = None
+    if config.mesher == "smooth":   # one label map for the site, the paths and the mesh: the segmentation's
+        from needletissue.imaging.segment import Segmentation, SegmentationConfig, segment
+
+        if config.segmentation:
+            seg = Segmentation.load(config.segmentation)
+        else:
+            d = None if config.ct else gp.data_dir() / "pelvis_ct"
+            seg = segment(config.ct or d / "example_ct.nii.gz", config.labels or d / "example_seg_fast_force_split.nii.gz",
+                          SegmentationConfig(cortical_thickness=config.cortical_thickness))
+        vol = gp.segmentation_label_volume(seg, side=config.side)
+    elif config.source == "ct":
         vol = gp.ct_label_volume(config.ct, config.labels, side=config.side)
     else:
         vol = gp.ssm_label_volume(side=config.side, spacing=config.ssm_spacing)
@@ -209,10 +235,37 @@ def build(config: PelvisConfig):
     else:
         site = gp.standard_site(vol, config.site, **kw)
     vol = gp.crop_to_site(vol, site)
+    if seg is not None:
+        return vol, gp.build_mesh_smooth(seg, vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size)
     mesh = gp.build_mesh(vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size,
                          far_size=config.far_size, cortical_thickness=config.cortical_thickness,
                          refine_radius=config.refine_radius)
     return vol, mesh
+
+
+def mesh_quality(pm, vol) -> dict:
+    """Quality and fidelity of the linear mesh that is solved (its tetra10 has the same corners): dihedral
+    angles (min, 1st percentile of the per-element minimum), and each tissue's mesh volume against its
+    voxel volume in the label map the mesh was made from (pm.label_volumes: the segmentation for the smooth
+    route; else the cropped label volume; hip cortical + cancellous against hip_bone; needles and clamp
+    replace the tissue they occupy, so the soft tissue they cross reads a little low)."""
+    from needletissue.geometry.pelvis import TISSUES
+    from needletissue.geometry.tetmesh import tet_quality
+
+    q = tet_quality(pm.points, pm.cells)
+    vols = {n: float(q["volume"][ids].sum()) for n, ids in pm.regions.items()}
+    vols["hip_bone"] = vols.pop("hip_cortical", 0.0) + vols.pop("hip_cancellous", 0.0)
+    counts = np.bincount(vol.labels.ravel(), minlength=len(TISSUES) + 1)
+    label = dict(pm.label_volumes or {n: float(counts[i] * vol.spacing ** 3) for i, n in TISSUES.items() if counts[i]})
+    bones = ("hip_bone", "sacrum", "femur")   # all bone: the split between bones is per element
+    vols["bone"], label["bone"] = (sum(d.get(b, 0.0) for b in bones) for d in (vols, label))
+    return {"min_dihedral_deg": float(q["min_dihedral"].min()),
+            "p01_dihedral_deg": float(np.percentile(q["min_dihedral"], 1)),
+            "below_10_deg": int(np.count_nonzero(q["min_dihedral"] < 10.0)),
+            "inverted": int(np.count_nonzero(q["volume"] <= 0)),
+            "volume_mm3": {n: vols[n] for n in label if n in vols},
+            "label_volume_mm3": label,
+            "volume_error_vs_labels": {n: vols[n] / v - 1.0 for n, v in label.items() if n in vols}}
 
 
 def force_unit(config: PelvisConfig, site) -> np.ndarray:
@@ -382,7 +435,8 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
               "linear_nodes": int(len(pm.points)),
               "cells_by_region": {k: int(len(v)) for k, v in qm.regions.items()},
               "dofs": int(model.ndof), "min_quality": float(tm.quality().min()),
-              "region_tags": {k: int(v) for k, v in fe[-1].region_tags.items()}},
+              "region_tags": {k: int(v) for k, v in fe[-1].region_tags.items()},
+              "quality": mesh_quality(pm, vol), "mesher": config.mesher, "mesh_info": pm.info},
         wall_time_s=time.perf_counter() - t0,
         results=loads,
         ranking=ranking,
@@ -407,7 +461,7 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
     )
     if contact is not None:
         res.contact = contact.summary(config.forces, [r.displacement for r in fe])
-    if config.source == "ct" and config.crosscheck_thickness:
+    if config.source == "ct" and config.crosscheck_thickness and not config.segmentation:
         res.thickness_img = thickness_crosscheck(config, pm)
     res.comparison = comparison_table(res)
     if out_dir is not None:
