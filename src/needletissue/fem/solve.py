@@ -29,7 +29,7 @@ SUBSTEP_START = 1e-3        # first substep only if its correction is <= this x 
 # like GMRES on a linear problem): the default `fe needle` 12 -> 8 Newton iterations (docs/bench.md)
 ANDERSON = 8
 SUBSTEP_CONTRACTION = 0.9   # a correction counts as progress if <= this x the smallest one so far;
-SUBSTEP_TOL = 0.1
+SUBSTEP_TOL = 0.1           # they go on to |r| < this x tol: mixing stops just under tol, Newton overshoots
 SUBSTEP_STALL = 3           # this many in a row without progress (or one 10x the smallest) end them
 
 
