@@ -18,31 +18,29 @@ from needletissue.fem.result import FEResult, green_lagrange, principal_stretche
 # linearised rotation stretches them, and their large spurious forces drive the soft modes. The tangent is
 # consistent (tests/fem/test_newton.py), so further corrections with the same factorisation converge
 # too, at a residual and a back-substitution each instead of a tangent assembly and a factorisation.
-SUBSTEPS = 8
+SUBSTEPS = 30               # at most this many substeps per Newton iteration
 # an increment that converged in at most this many Newton iterations lets the next one grow 1.5x;
 # contact runs (extra items) converge in 5-8 from their first increments on (docs/contact.md)
 GROW_ITERATIONS = 5
 GROW_ITERATIONS_ITEMS = 8
 SUBSTEP_START = 1e-3        # first substep only if its correction is <= this x max |u| (1e-2 at the
                             # tissue's K = 10 MPa: substeps far from the solution mislead Newton, bench.md)
-SUBSTEP_CONTRACTION = 0.8   # each further one only if <= this x the previous one (0.5: 14 iterations, not 11)
+# Anderson mixing of the substeps (the last ANDERSON corrections; a secant update of the stale factor,
+# like GMRES on a linear problem): the default `fe needle` 12 -> 8 Newton iterations (docs/bench.md)
+ANDERSON = 8
+SUBSTEP_CONTRACTION = 0.9   # a correction counts as progress if <= this x the smallest one so far;
+SUBSTEP_TOL = 0.1           # they go on to |r| < this x tol: mixing stops just under tol, Newton overshoots
+SUBSTEP_STALL = 3           # this many in a row without progress (or one 10x the smallest) end them
 
 
-def _substep_plugin(fem, linear, dof1, nmax: int):
+def _substep_plugin(fem, linear, dof1, nmax: int, tol: float):
     """A FElupe plugin: after the linear solve, update x1 = x + dx and add up to `nmax`
-    modified-Newton corrections -K^-1 r with the factor `linear` kept; counts them in `.taken`."""
+    modified-Newton corrections c = -K^-1 r with the factor `linear` kept, Anderson-mixed; counts
+    them in `.taken`. Ends with the iterate of the smallest |r| (evaluated last)."""
 
     class _Substeps(fem.Plugin):
         taken = 0
         enabled = True
-
-        def _correction(self, like, f):
-            c = linear.resolve(-f[dof1])
-            if c is None or not np.all(np.isfinite(c)):
-                return None, np.inf
-            full = np.zeros_like(like)
-            full[dof1] = c
-            return full, float(np.linalg.norm(full.reshape(-1, 3), axis=1).max())
 
         def after_linear_solve(self, context, st):
             if not self.enabled:
@@ -55,20 +53,46 @@ def _substep_plugin(fem, linear, dof1, nmax: int):
                 else:
                     x = context.update(st.x, dx)
                     f = context.fun(x)
-                umax = float(np.linalg.norm(x[0].values, axis=1).max())
-                limit = SUBSTEP_START * umax
+                fnorm = context.check(dx, x, f)[1]
+                best = (fnorm, x, f, dx)
+                limit = SUBSTEP_START * float(np.linalg.norm(x[0].values, axis=1).max())
+                dX, dF, last, smallest, stalled = [], [], None, np.inf, 0
                 for _ in range(nmax):
-                    _, fnorm, ok = context.check(dx, x, f)
-                    if ok or not np.isfinite(fnorm) or not np.all(np.isfinite(f)):
+                    if fnorm < SUBSTEP_TOL * tol or not np.isfinite(fnorm) or not np.all(np.isfinite(f)):
                         break
-                    c, cmax = self._correction(dx, f)
-                    if not cmax <= limit:
+                    c = linear.resolve(-f[dof1])
+                    if c is None or not np.all(np.isfinite(c)):
                         break
-                    x = context.update(x, c)
-                    f = context.fun(x)  # the accepted trial is evaluated last
-                    dx = dx + c
-                    limit = SUBSTEP_CONTRACTION * cmax
+                    full = np.zeros_like(dx)
+                    full[dof1] = c
+                    cmax = float(np.linalg.norm(full.reshape(-1, 3), axis=1).max())
+                    if not cmax <= limit:  # the first: near the solution; later ones: not diverging
+                        break
+                    stalled = stalled + 1 if cmax > SUBSTEP_CONTRACTION * smallest else 0
+                    if stalled >= SUBSTEP_STALL:
+                        break
+                    smallest = min(smallest, cmax)
+                    limit = 10 * smallest
+                    if last is not None:
+                        dF.append(c - last)
+                        del dF[:-ANDERSON], dX[:len(dX) - len(dF)]
+                    last = c
+                    if dF:  # the combination of the last corrections with the least mixed residual
+                        Fm = np.column_stack(dF)
+                        gamma = np.linalg.lstsq(Fm, c, rcond=None)[0]
+                        c = c - (np.column_stack(dX) + Fm) @ gamma
+                        full[dof1] = c
+                    x = context.update(x, full)
+                    f = context.fun(x)
+                    dx = dx + full
+                    dX.append(c)
                     self.taken += 1
+                    fnorm = context.check(dx, x, f)[1]
+                    if fnorm < best[0]:
+                        best = (fnorm, x, f, dx)
+                if not fnorm <= best[0]:  # mixing is not monotone: back to the best iterate, evaluated last
+                    _, x, f, dx = best
+                    f = context.fun(x)
                 st.x, st.fun, st.dx, st.updated = x, f, dx, True
             finally:
                 linear.release()  # no factor held during the next tangent assembly
@@ -355,10 +379,11 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     substeps     : modified-Newton substeps per Newton iteration (default SUBSTEPS without extra
                    `items` and line search, else 0): after the update x + dx, further corrections
                    -K^-1 r(x) with the same factorisation of K (one residual and one back-substitution
-                   each, no tangent assembly, no factorisation) while the first is <= SUBSTEP_START
-                   max |u| and each is <= SUBSTEP_CONTRACTION of the previous one, until |r| < tol.
-                   Only with a solver that keeps its factor (Pardiso); the convergence test is
-                   unchanged, so the answer is the same to the tolerance (docs/bench.md, "Newton").
+                   each, no tangent assembly, no factorisation), Anderson-mixed over the last ANDERSON,
+                   while the first is <= SUBSTEP_START max |u|, none is 10x the smallest so far and
+                   fewer than SUBSTEP_STALL in a row fail to shrink below SUBSTEP_CONTRACTION of it,
+                   until |r| < tol. Only with a solver that keeps its factor (Pardiso); the convergence
+                   test is unchanged, so the answer is the same to the tolerance (docs/bench.md, "Newton").
                    An increment that fails after substeps is tried once more without them before
                    it is halved.
 
@@ -413,7 +438,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                                      "give substeps=0 or linesearch=False")
     sub = None
     if substeps and linear.can_resolve:
-        sub = _substep_plugin(fem, linear, loads.dof1, substeps)
+        sub = _substep_plugin(fem, linear, loads.dof1, substeps, tol)
         linear.keep_factor(True)
         plugins.insert(0, sub)
     if searching:
