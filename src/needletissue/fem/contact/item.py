@@ -33,8 +33,7 @@ from functools import lru_cache
 
 import ipctk
 import numpy as np
-from felupe import LinesearchPlugin, Plugin
-from felupe.plugins import LinesearchTrial
+from felupe import Plugin
 from felupe.mechanics import Assemble, Results
 from scipy.sparse import coo_matrix, csr_matrix
 
@@ -257,53 +256,6 @@ class CollisionFreeStep(Plugin):
         if alpha < 1:
             self.alphas.append(alpha)
             st.dx = self.fraction * alpha * st.dx
-
-
-class SlopeLinesearch(LinesearchPlugin):
-    """FElupe line search for contact (after `CollisionFreeStep`): along the Newton step dx, the
-    slope of the total potential is s(a) = r(x + a dx) . dx (residual r = its gradient: the bodies'
-    strain energy, the load's work, the barrier; friction with the normal forces of the trial). A
-    trial is accepted when it is admissible (det F > 0, finite residual) and either the potential has
-    not turned uphill past the minimum along the line, s(a) <= eta |s(0)| (Matthies and Strang 1979;
-    FEBio's line search), or the residual contracts, |r(a)| <= contraction |r(0)| (Newton's own
-    regime: near the solution the implicit friction, not a potential, can make s(1) > 0 on a good
-    step). A rejected trial's a shrinks to the zero of s interpolated linearly between 0 and the
-    trial, within [0.1, 0.9] of it; an inadmissible one's is halved. Not Armijo on |r| alone: next
-    to a barrier |r| is no merit function (it halted the needle model at 0.5 % of the load,
-    measured). A period-2 cycle of full Newton steps (no contraction, overshoot across the minimum)
-    is cut at the slope's zero (docs/contact.md)."""
-
-    def __init__(self, eta: float = 0.5, contraction: float = 0.9, max_trials: int = 10):
-        super().__init__(admissible=True, residual=False, max_halvings=max_trials)
-        self.eta, self.contraction = eta, contraction
-
-    def after_linear_solve(self, context, st):
-        from felupe.tools._newton import NewtonConvergenceError, _restore, _snapshot
-
-        x, dx = st.x, st.dx
-        dof1 = slice(None) if context.dof1 is None else context.dof1
-        s0 = float(np.dot(st.fun[dof1], dx[dof1]))
-        r0 = float(np.linalg.norm(st.fun[dof1]))
-        descent = s0 < 0  # else (indefinite tangent) only admissibility decides
-        snapshot = _snapshot(x)
-        alpha = 1.0
-        for k in range(self.max_halvings + 1):
-            _restore(x, snapshot)
-            trial = LinesearchTrial(context, st, context.update(x, alpha * dx), alpha, alpha * dx, k)
-            if self.check_admissible(trial) and trial.finite:
-                s = float(np.dot(trial.fun[dof1], dx[dof1]))
-                if (not descent or s <= self.eta * abs(s0)
-                        or np.linalg.norm(trial.fun[dof1]) <= self.contraction * r0):
-                    st.x, st.fun, st.dx, st.alpha, st.updated = trial.x, trial.fun, trial.dx, alpha, True
-                    self.alphas[-1].append(alpha)
-                    return
-                alpha *= float(np.clip(-s0 / (s - s0), 0.1, 0.9))  # the slope's zero, s linear in a
-            else:
-                alpha *= 0.5
-        _restore(x, snapshot)
-        for item in context.items or []:
-            item.field.link(x)
-        raise NewtonConvergenceError(f"contact line search: no admissible step in {self.max_halvings + 1} trials")
 
 
 class _ContactResults(Results):
