@@ -57,3 +57,19 @@ def test_stop_before_the_child_starts(writer):
     assert len(list(writer.iterdir())) < 5000
     with pytest.raises(ChildCrash):
         job()
+
+
+def test_stopped_child_with_sigpipe_at_its_default(writer):
+    # VTK/ITK reset SIGPIPE to its default: writing the request to a child killed before it read it
+    # then killed the caller (pytest died with exit 141 in CI)
+    import signal
+
+    old = signal.signal(signal.SIGPIPE, signal.SIG_DFL)
+    try:
+        for _ in range(20):
+            job = start_in_child("slowwriter:write_slowly", {"out": str(writer), "n": 5000}, what="w")
+            job.stop()
+            with pytest.raises(ChildCrash):
+                job()
+    finally:
+        signal.signal(signal.SIGPIPE, old)
