@@ -349,3 +349,14 @@ def dataclass_from(cls, data: dict, where: str = "--config"):
         return cls(**kw)
     except TypeError as exc:
         raise InputError(where, str(exc)) from None
+
+
+def ignore_sigpipe() -> None:
+    """Before talking to a child process through a pipe: native libraries (ITK, VTK) may reset SIGPIPE to
+    its default, and a child that died (or was stopped before reading) then killed this process through
+    the closed pipe instead of raising an error. Main thread only (where Python sets handlers)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGPIPE, signal.SIG_IGN)

@@ -18,6 +18,7 @@ import tempfile
 from pathlib import Path
 
 from needletissue.errors import NeedleTissueError
+from needletissue.runinfo import ignore_sigpipe
 
 
 class ChildCrash(NeedleTissueError):
@@ -31,7 +32,7 @@ def call_in_child(target: str, kwargs: dict, *, what: str, started=None) -> dict
     (subclasses of NeedleTissueError that take one message); anything else becomes ChildCrash naming `what`.
     `started(proc)` is called with the child's Popen as soon as it runs.
     """
-    _ignore_sigpipe()
+    ignore_sigpipe()
     src = str(Path(__file__).resolve().parents[2])  # the directory holding `needletissue`
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (src, os.environ.get("PYTHONPATH")) if p),
                **{_PARENT: str(os.getpid())})
@@ -68,7 +69,7 @@ def start_in_child(target: str, kwargs: dict, *, what: str):
     child went on writing left a folder behind)."""
     import threading
 
-    _ignore_sigpipe()   # here: the thread below may not set signal handlers
+    ignore_sigpipe()   # here: the thread below may not set signal handlers
     box, lock = {}, threading.Lock()
 
     def started(proc):
@@ -122,15 +123,6 @@ class _UnwindOnSigterm:
     def __exit__(self, *exc):
         if self.old is not None:
             signal.signal(signal.SIGTERM, self.old)
-
-
-def _ignore_sigpipe() -> None:
-    """Native libraries (ITK, VTK) may reset SIGPIPE to its default: the request written to a child
-    that was stopped (or died) before reading it then killed this process (exit 141), not the write."""
-    import threading
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGPIPE, signal.SIG_IGN)
 
 
 def _exit_on_signal(signum, frame):

@@ -33,6 +33,7 @@ TISSUES = {
     8: "adipose",
     9: "body_wall",
 }
+RAS_LPS = np.array([-1.0, -1.0, 1.0])  # RAS <-> LPS: x and y negated (a rotation by pi about z: orientation kept)
 SOFT_TISSUES = ("adipose", "iliopsoas", "gluteus_medius", "gluteus_maximus", "gluteus_minimus", "body_wall")
 # body_wall (skin and the unlabelled muscles of the trunk and thigh wall: obliques, sartorius, tensor
 # fasciae latae) is muscle-like tissue: it counts as muscle in the thickness along a needle.
@@ -244,11 +245,9 @@ def ssm_label_volume(side: str = "right", spacing: float = 2.0, muscle_mm: float
     d = data_dir() / "pelvis_ssm"
     # The SSM frame is LPS-like (+y posterior: the sacrum lies at larger y than the hips; +z superior),
     # so the "xpos" hip is the left one. Rotate 180 deg about z into RAS.
-    flip = np.array([-1.0, -1.0, 1.0])
-
     def load(name):
         m = pv.read(d / f"LLP26_mean_{name}.stl")
-        m.points = m.points * flip
+        m.points = m.points * RAS_LPS
         return m
 
     hip = load("hip_xneg" if side == "right" else "hip_xpos")
@@ -890,7 +889,6 @@ def needle_solids(axes, radius: float, clamp_frame, clamp_bottom, clamp_size, ba
                   margin=float(margin if margin is not None else radius))
 
 
-RAS_LPS = np.array([-1.0, -1.0, 1.0])  # RAS <-> LPS: x and y negated (a rotation by pi about z: orientation kept)
 # the segmentation's tissues (imaging.segment) -> the model's regions; bone is split by bone below
 SEG_REGIONS = {"adipose": "adipose", "other_soft_tissue": "body_wall"}
 

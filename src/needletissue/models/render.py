@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from needletissue.runinfo import write_atomic
+from needletissue.runinfo import ignore_sigpipe, write_atomic
 
 BONE_COLOUR = "#e8dcc0"  # ivory: reads as bone and stays distinct from the viridis map
 OUTLINE_COLOUR = "#555555"
@@ -282,13 +282,10 @@ def render_vtu(vtu, png, scene: RenderScene) -> Path:
 def isolated(fn, *args):
     """Run fn(*args) in a fresh process: a crash in VTK's native code cannot take the caller down."""
     import multiprocessing as mp
-    import signal
     from concurrent.futures import ProcessPoolExecutor
     from concurrent.futures.process import BrokenProcessPool
 
-    # Native libraries (ITK, VTK) may reset SIGPIPE to its default; a child that dies would then
-    # kill this process through the closed pipe instead of raising BrokenProcessPool.
-    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+    ignore_sigpipe()   # a dead worker: BrokenProcessPool, not a dead caller
 
     pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"), initializer=_worker_start)
     try:

@@ -21,8 +21,8 @@ from needletissue.errors import InputError
 from needletissue.models.render import stop_workers
 from needletissue.report.config import ReproduceConfig, annotated_toml
 from needletissue.report.paper import PAPER
-from needletissue.runinfo import (check_output_dir, current_umask, make_dir, to_jsonable, version_record, write_atomic,
-                                  write_json)
+from needletissue.runinfo import (check_output_dir, current_umask, ignore_sigpipe, make_dir, to_jsonable,
+                                  version_record, write_atomic, write_json)
 
 MARKER = ".needletissue-reproduce"
 # A reproduced number "agrees" with the paper's when within 5 % of it: the paper prints 3-5 digits and
@@ -110,9 +110,7 @@ def _run_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext") -> St
     from concurrent.futures import ProcessPoolExecutor
     from concurrent.futures.process import BrokenProcessPool
 
-    # Native libraries (ITK, VTK) may reset SIGPIPE to its default; a child that dies would then
-    # kill this process through the closed pipe instead of raising BrokenProcessPool.
-    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+    ignore_sigpipe()   # a dead worker: BrokenProcessPool, not a dead caller
 
     pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"))
     try:

@@ -306,7 +306,7 @@ def thickness_crosscheck(config: PelvisConfig, pm) -> list:
     """Soft-tissue thickness along each needle from the `img` branch's own segmentation and path walk
     (needletissue.imaging.segment + geometry.thickness.thickness_along, LPS frame): an independent
     check of geometry.pelvis.needle_paths. The path enters 10 mm outside our skin exit."""
-    from needletissue.geometry.pelvis import data_dir
+    from needletissue.geometry.pelvis import RAS_LPS, data_dir
     from needletissue.geometry.thickness import thickness_along
     from needletissue.imaging.segment import SegmentationConfig, segment
 
@@ -316,12 +316,11 @@ def thickness_crosscheck(config: PelvisConfig, pm) -> list:
     # split on the CT grid itself: the thickness needs bone vs soft tissue only, and the 0.75 mm split
     # grid took ~4 GB more memory
     seg = segment(ct, labels, SegmentationConfig(split_spacing=3.0))
-    ras_to_lps = np.array([-1.0, -1.0, 1.0])
     out = []
     for i, p in enumerate(pm.paths):
-        r = thickness_along(seg, (p.skin_exit - 10.0 * pm.site.direction) * ras_to_lps,
-                            pm.site.direction * ras_to_lps)
-        bone = None if r.bone_point is None else np.asarray(r.bone_point) * ras_to_lps
+        r = thickness_along(seg, (p.skin_exit - 10.0 * pm.site.direction) * RAS_LPS,
+                            pm.site.direction * RAS_LPS)
+        bone = None if r.bone_point is None else np.asarray(r.bone_point) * RAS_LPS
         out.append({"needle": f"needle_{i + 1}", "total_mm": r.soft_tissue_thickness_mm,
                     "by_tissue_mm": r.thickness_by_tissue,
                     "bone_point_distance_mm": None if bone is None else float(np.linalg.norm(bone - p.entry)),
