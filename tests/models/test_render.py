@@ -214,3 +214,29 @@ def test_isolated_child_dies_with_a_killed_caller(tmp_path):
     p.wait(10)
     time.sleep(5)
     assert not late.exists()
+
+
+def test_render_without_a_display_prints_no_x_server_warning(tmp_path):
+    # `reproduce` printed VTK's "bad X server connection" once per figure: VTK 9.4+ tries X first without a
+    # display. offscreen() asks for EGL directly where it is installed; the picture must still be made.
+    import ctypes.util
+    import subprocess
+    import sys
+
+    from needletissue.models.render import offscreen
+
+    if not ctypes.util.find_library("EGL"):
+        pytest.skip("no libEGL here: VTK's own fallback order applies")
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY",
+                                                            "VTK_DEFAULT_OPENGL_WINDOW")}
+    env = offscreen(env)
+    assert env["VTK_DEFAULT_OPENGL_WINDOW"] == "vtkEGLRenderWindow"
+    png = tmp_path / "s.png"
+    code = ("import pyvista as pv; p = pv.Plotter(off_screen=True); p.add_mesh(pv.Sphere()); "
+            f"p.screenshot({str(png)!r})")
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "X server" not in r.stderr
+    assert png.stat().st_size > 1000
+    with_display = offscreen({"DISPLAY": ":0"})
+    assert "VTK_DEFAULT_OPENGL_WINDOW" not in with_display  # a desktop user's display is left alone

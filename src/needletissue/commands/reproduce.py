@@ -40,10 +40,9 @@ def register(app: typer.Typer, groups) -> None:
         """Reproduce the paper: material curves, traction validation, Ritz at 100/200/300 N, needle FE,
         and the anatomical model when data is present. Writes results.json, config.toml, versions.json,
         figures, VTU files and a self-contained report.html into --out."""
-        import os
+        from needletissue.models.render import offscreen
 
-        os.environ.setdefault("MPLBACKEND", "Agg")
-        os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+        offscreen()
         from rich.console import Console
 
         from needletissue.errors import InputError

@@ -25,6 +25,19 @@ TISSUE_OPACITY = 0.18  # enough to see the tissue's shape and colour, little eno
 SIDE = 0.24  # width of the side column (colour bar, legend, axes) as a fraction of the window
 
 
+def offscreen(env=os.environ):
+    """Set `env` (a mapping: os.environ or a child's) for off-screen PyVista. Without a display VTK 9.4+
+    tries X first and prints "bad X server connection" before it falls back to EGL: ask for EGL
+    directly when the library is there (forcing a window class VTK cannot load would fail instead)."""
+    import ctypes.util
+
+    env.setdefault("PYVISTA_OFF_SCREEN", "true")
+    env.setdefault("MPLBACKEND", "Agg")
+    if not env.get("DISPLAY") and not env.get("WAYLAND_DISPLAY") and ctypes.util.find_library("EGL"):
+        env.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    return env
+
+
 @dataclass
 class RenderScene:
     """What a static render shows besides the mesh. Vectors in the mesh's frame (mm).
@@ -140,7 +153,7 @@ class Built:
 def build(grid, regions: Regions, scene: RenderScene, force_N: float, frame: str = "",
           window_size=(1400, 1000)) -> Built:
     """The scene on an off-screen plotter: tests inspect it, render() saves it."""
-    os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+    offscreen()
     import pyvista as pv
 
     grid = grid.copy()

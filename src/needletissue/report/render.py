@@ -4,7 +4,6 @@ deformed VTU, and maximum needle deformation against force (FE, Ritz, the paper'
 from __future__ import annotations
 
 import io
-import os
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +15,9 @@ from needletissue.runinfo import write_atomic
 def render_vtu(vtu: str | Path, png: str | Path, scene) -> Path:
     """A result VTU drawn as models.render draws it (scene: models.render.RenderScene): bone opaque, tissue
     translucent, needles and clamp by |u|, undeformed outline, force arrow, axes, colour bar beside."""
-    os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
-    from needletissue.models.render import render_vtu as render
+    from needletissue.models.render import offscreen, render_vtu as render
+
+    offscreen()
 
     return render(vtu, png, scene)
 

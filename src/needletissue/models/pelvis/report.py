@@ -94,7 +94,9 @@ def render_in_subprocess(out_dir) -> dict:
 
     code = ("import sys; from needletissue.models.pelvis.report import figures_from_files; "
             "print('\\n'.join(figures_from_files(sys.argv[1])))")
-    env = dict(os.environ, PYVISTA_OFF_SCREEN="true", MPLBACKEND="Agg")
+    from needletissue.models.render import offscreen
+
+    env = offscreen(dict(os.environ, PYVISTA_OFF_SCREEN="true", MPLBACKEND="Agg"))
     r = subprocess.run([sys.executable, "-c", code, str(out_dir)], capture_output=True, text=True, env=env)
     if r.returncode != 0:
         return {"error": f"figure process exited with {r.returncode}: {r.stderr.strip()[-300:]}"}
