@@ -99,6 +99,41 @@ def test_isolated_stage_that_crashes_fails_alone(tmp_path):
     assert data["stages"]["s"]["status"] == "ok" and not res.ok
 
 
+def _waits_for_partner(cfg, ctx):
+    # succeeds only if the partner stage runs at the same time (run one after the other, it times out)
+    import time
+
+    partner = ctx.run_dir / "partner.flag"
+    t_end = time.monotonic() + 90
+    while not partner.exists():
+        if time.monotonic() > t_end:
+            raise TimeoutError("the partner stage never ran beside this one")
+        time.sleep(0.02)
+    return StageResult({"saw_partner": True})
+
+
+def _partner(cfg, ctx):
+    (ctx.run_dir / "partner.flag").write_text("here")
+    return StageResult({"partner": True})
+
+
+def _reads_previous(cfg, ctx):
+    return StageResult({"after": sorted(ctx.previous)})
+
+
+def test_isolated_stages_run_side_by_side_and_results_stay_in_order(tmp_path):
+    """The FE stages (isolated) start together and overlap; a later stage still sees every earlier result."""
+    out = tmp_path / "res"
+    res = run_reproduce(load_config(), out, [Stage("a", "A", _waits_for_partner, _always, isolated=True),
+                                             Stage("b", "B", _partner, _always, isolated=True),
+                                             Stage("off", "Off", _broken, lambda c, x: (False, "off")),
+                                             Stage("last", "L", _reads_previous, _always)], progress=False)
+    assert res.ok, [o.reason for o in res.outcomes]
+    assert [o.name for o in res.outcomes] == ["a", "b", "off", "last"]
+    assert res.outcomes[3].result.data == {"after": ["a", "b"]}
+    assert res.outcomes[2].status == "skipped"
+
+
 def test_result_folder_and_files_follow_the_umask(tmp_path):
     import os
     import stat

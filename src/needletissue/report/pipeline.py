@@ -105,26 +105,37 @@ class Stage:
     isolated: bool = False
 
 
-def _run_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext") -> StageResult:
+def _start_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext"):
+    """Start an isolated stage in its own process now; `_collect` waits for it. Isolated stages (the FE
+    models) start together at the beginning and run beside the in-process stages: on two cores the needle
+    FE and the anatomical model, each mostly one thread, overlap."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
-    from concurrent.futures.process import BrokenProcessPool
 
     ignore_sigpipe()   # a dead worker: BrokenProcessPool, not a dead caller
-
     pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"))
+    return pool, pool.submit(_timed, stage.run, cfg, StageContext(ctx.run_dir, ctx.ct, ctx.labels))
+
+
+def _collect(stage: Stage, started) -> tuple[StageResult, float]:
+    from concurrent.futures.process import BrokenProcessPool
+
+    pool, fut = started
     try:
-        fut = pool.submit(_run_noting_warnings, stage.run, cfg, StageContext(ctx.run_dir, ctx.ct, ctx.labels))
-        try:
-            return fut.result()
-        except BrokenProcessPool:
-            raise RuntimeError(f"the {stage.name} stage's process died (a crash in native code, e.g. a "
-                               "segmentation fault, or killed for memory)") from None
-    except BaseException:  # interrupted (SIGINT/SIGTERM): stop the worker, do not wait for its result
-        stop_workers(pool)
-        raise
+        return fut.result()
+    except BrokenProcessPool:
+        raise RuntimeError(f"the {stage.name} stage's process died (a crash in native code, e.g. a "
+                           "segmentation fault, or killed for memory)") from None
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        if fut.done():  # interrupted while waiting: the caller stops the worker instead of waiting for it
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _timed(run, cfg, ctx) -> tuple[StageResult, float]:
+    """The stage's result and its own wall time (an isolated stage's, not the time spent waiting for it)."""
+    ts = time.perf_counter()
+    res = _run_noting_warnings(run, cfg, ctx)
+    return res, time.perf_counter() - ts
 
 
 def _run_noting_warnings(run, cfg, ctx) -> StageResult:
@@ -236,29 +247,23 @@ def _stages(cfg, out, tmp, stages, ct, labels, progress, t0, outcomes, write_rep
     from needletissue.report.html import comparison_markdown
 
     ctx = StageContext(run_dir=tmp, ct=ct, labels=labels)
+    enabled = {s.name: s.enabled(cfg, ctx) for s in stages}
+    started = {}
     with _StageProgress(stages, progress) as bar:
-        for stage in stages:
-            on, reason = stage.enabled(cfg, ctx)
-            if not on:
-                outcomes.append(StageOutcome(stage.name, stage.title, "skipped", 0.0, reason))
-                bar.finish(stage, "skipped", reason)
-                continue
-            bar.start(stage)
-            ts = time.perf_counter()
-            try:
-                res = (_run_isolated(stage, cfg, ctx) if stage.isolated
-                       else _run_noting_warnings(stage.run, cfg, ctx))
-            except Exception as exc:  # a failed stage is reported; the others still run
-                dt = time.perf_counter() - ts
-                msg = f"{type(exc).__name__}: {exc}"
-                outcomes.append(StageOutcome(stage.name, stage.title, "failed", dt,
-                                             msg + "\n" + traceback.format_exc(limit=6)))
-                bar.finish(stage, "failed", msg)
-                continue
-            dt = time.perf_counter() - ts
-            ctx.previous[stage.name] = res
-            outcomes.append(StageOutcome(stage.name, stage.title, "ok", dt, result=res))
-            bar.finish(stage, "ok", f"{dt:.1f} s")
+        try:
+            for stage in stages:
+                if stage.isolated and enabled[stage.name][0]:
+                    started[stage.name] = _start_isolated(stage, cfg, ctx)
+                    bar.start(stage)
+            for stage in stages:
+                _run_stage(stage, cfg, ctx, enabled[stage.name], started.get(stage.name), bar, outcomes)
+        except BaseException:  # interrupted (SIGINT/SIGTERM): stop the workers, do not wait for them
+            for pool, _ in started.values():
+                stop_workers(pool)
+            raise
+        finally:
+            for pool, _ in started.values():
+                pool.shutdown(wait=True, cancel_futures=True)
     _attach_reasons(outcomes)
     result = ReproduceResult(out, outcomes, time.perf_counter() - t0)
     write_atomic(tmp / "config.toml", annotated_toml(cfg))
@@ -270,6 +275,30 @@ def _stages(cfg, out, tmp, stages, ct, labels, progress, t0, outcomes, write_rep
     write_atomic(tmp / MARKER, f"complete {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
     _swap(tmp, out)
     return result
+
+
+def _run_stage(stage, cfg, ctx, enabled, started, bar, outcomes) -> None:
+    """One stage's outcome, in stage order: run it here, or wait for its process (started). A failed stage
+    is reported; the others still run."""
+    on, reason = enabled
+    if not on:
+        outcomes.append(StageOutcome(stage.name, stage.title, "skipped", 0.0, reason))
+        bar.finish(stage, "skipped", reason)
+        return
+    if started is None:
+        bar.start(stage)
+    ts = time.perf_counter()
+    try:
+        res, dt = _collect(stage, started) if started else _timed(stage.run, cfg, ctx)
+    except Exception as exc:
+        msg = f"{type(exc).__name__}: {exc}"
+        outcomes.append(StageOutcome(stage.name, stage.title, "failed", time.perf_counter() - ts,
+                                     msg + "\n" + traceback.format_exc(limit=6)))
+        bar.finish(stage, "failed", msg)
+        return
+    ctx.previous[stage.name] = res
+    outcomes.append(StageOutcome(stage.name, stage.title, "ok", dt, result=res))
+    bar.finish(stage, "ok", f"{dt:.1f} s")
 
 
 NO_REASON = "reason not measured in this run (the reconciliation stage did not run or has no measurement for this row)"
