@@ -576,7 +576,7 @@ _UW4 = _mul(_UW2, _UW2)
 _NV, _NH = 24, 48
 _PHI3 = _NV + 2 * _NH
 _SC = _PHI3 + 3
-_NTAB = _SC + 17
+_NTAB = _SC + 18  # r^0..r^8 end at _SC + 17
 _NMU = 132  # cubic_table's scratch
 _INV = 1.0 / np.arange(1.0, 25.0)  # _INV[n - 1] = 1 / n (multiplications, not divisions, per moment)
 # Beyond these the closed form hands the sample to the Gauss path, which then reports exactly what it
