@@ -1014,20 +1014,21 @@ def _post3c(c, l, nl, cos_term, tab, eb, es, wk, out, react, m, fq, PQ):
     il = 1.0 / l
     a2 = 2.0 * a * il  # dv/dz = s (a2 + b3 s)
     b3 = 3.0 * b * il
+    # the points of all layers first (independent: one vectorised loop, square roots included), then
+    # each layer's sum in order (one loop per layer of 11 points: 98 -> 66 ns per _post3c, load 7.7)
+    nt = nl * nq
+    for q in range(nt):
+        s = PQ[q]
+        v = s * s * (a + b * s)
+        if cos_term:
+            dd = s * (a2 + b3 * s)
+            x = v * np.sqrt(1.0 + dd * dd)
+        else:
+            x = v
+        fq[q] = PQ[nt + q] * (x + x * x * x)
     for j in range(nl):
-        # the points first (independent: the compiler can vectorise the square roots), then the sum
-        o = j * nq
-        for q in range(nq):
-            s = PQ[o + q]
-            v = s * s * (a + b * s)
-            if cos_term:
-                dd = s * (a2 + b3 * s)
-                x = v * np.sqrt(1.0 + dd * dd)
-            else:
-                x = v
-            fq[q] = PQ[o + nl * nq + q] * (x + x * x * x)
         r = 0.0
-        for q in range(nq):
+        for q in range(j * nq, (j + 1) * nq):
             r += fq[q]
         react[m, j] = r
 
@@ -1311,7 +1312,7 @@ def _solve_range(start, stop, F, KB, L, Z3, T, K, cos_term, order, auto, pmax, t
     tab = np.empty(_NTAB)
     mu = np.empty(_NMU)
     pw = np.empty(18)
-    fq = np.empty(11)
+    fq = np.empty(max(nl, 1) * 11)  # _post3c's reaction integrands
     out = np.full(NCOLS, np.nan)  # one sample's scalars (NaN where a failed sample has none)
     shared = L.shape[0] == 1
     cubic = closed and order == 3
