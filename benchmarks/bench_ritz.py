@@ -4,6 +4,8 @@
     python benchmarks/bench_ritz.py [--n 200000] [--repeat 5]     (the per-core table only)
     python benchmarks/bench_ritz.py --previous REF [--n 200000] [--repeat 9]
         (solve_batch of git revision REF against this version, alternating in one process)
+    python benchmarks/bench_ritz.py --latency
+        (one order-3 energy with its Hessian: independent calls against a dependent chain)
 
 Baseline: scipy.optimize.minimize(method="BFGS") with a finite-difference gradient of the SAME
 order-3 energy (same basis and Gauss rule, energy evaluated in NumPy). Targets (issue #4): one warm
@@ -137,6 +139,46 @@ def ab_table(prev, n=N_BATCH, repeat=9) -> str:
     return "\n".join(rows)
 
 
+def latency_table(n=1_000_000, repeat=7) -> str:
+    """CPU ns per order-3 energy with gradient and Hessian (kernel._energy3c, the body of a Newton
+    iteration), on independent inputs (throughput) and as a chain whose next input depends on the
+    last output (latency, as in Newton). Equal times: the work is throughput-bound, and interleaving
+    rows cannot hide anything."""
+    import time
+
+    from numba import njit
+
+    from needletissue.ritz import kernel
+
+    @njit
+    def run(tab, c0, c1, chain):
+        pw = np.empty(18)
+        acc = 0.0
+        x0, x1 = c0[0], c1[0]
+        for i in range(c0.shape[0]):
+            r = kernel._energy3c(x0, x1, tab, 40.0, 300.0, True, pw)
+            acc += r[4]
+            x0 = c0[i] + (1e-300 * r[4] if chain else 0.0)  # a data dependence, no change
+            x1 = c1[i] + (1e-300 * r[5] if chain else 0.0)
+        return acc
+
+    tab = np.empty(kernel._NTAB)
+    kernel.cubic_table(84.18, np.array([22.0, 10.0]), np.array([0.048, 0.023]), 84.18, True, tab,
+                       np.empty(kernel._NMU))
+    rng = np.random.default_rng(0)
+    c0, c1 = rng.uniform(1, 20, n), rng.uniform(-5, 5, n)
+    res = {False: [], True: []}
+    for chain in res:
+        run(tab, c0[:10], c1[:10], chain)
+    for _ in range(repeat):
+        for chain in res:
+            t0 = time.process_time()
+            run(tab, c0, c1, chain)
+            res[chain].append((time.process_time() - t0) / n)
+    return (f"order-3 energy + gradient + Hessian: {np.median(res[False]) * 1e9:.1f} ns independent, "
+            f"{np.median(res[True]) * 1e9:.1f} ns chained (medians of {repeat})")
+
+
 def format_table(cpu) -> str:
     rows = ["| batch | path | CPU per solve | solves/s per core | vs previous |", "|---|---|---|---|---|"]
     for (kind, name), s in cpu.items():
@@ -252,9 +294,14 @@ if __name__ == "__main__":
     ap.add_argument("--n", type=int, default=N_BATCH)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--previous", metavar="REF", help="git revision to compare solve_batch against")
+    ap.add_argument("--latency", action="store_true", help="energy evaluations: independent vs chained")
     args = ap.parse_args()
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs; N = {args.n:,}, "
           f"{args.repeat} repeats; {sys.version.split()[0]}")
+    if args.latency:
+        print(latency_table(repeat=args.repeat))
+        print(f"load average {os.getloadavg()[0]:.2f} at the end")
+        sys.exit(0)
     if args.previous:
         print(f"previous = {args.previous}")
         print(ab_table(previous_ritz(args.previous), args.n, args.repeat))
