@@ -388,7 +388,9 @@ def test_muscle_attachments_stay_bonded_beyond_the_sliding_radius(coarse):
     bonded = interface_faces(split, muscles, bones)[0]  # faces still shared after the split
     assert len(bonded) == info["muscle_bone_faces_bonded"]
     (mb,) = [s for s in contact._split if s.name == "muscle-bone"]
-    assert len(mb.faces_a) == info["muscle_bone_faces_sliding"]
+    assert len(mb.faces_a) >= info["muscle_bone_faces_sliding"]
+    assert info["muscle_bone_area_sliding_mm2"] + info["muscle_bone_area_bonded_mm2"] <= \
+        info["muscle_bone_area_total_mm2"] * (1 + 1e-12)
     # (attached by their element's centroid: faces up to an element inside the radius)
     axis = _axis_distance(split.points[mb.nodes_a], coarse.needle_axes)
     assert axis.max() < 25.0 + 18.0

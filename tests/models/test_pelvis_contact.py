@@ -57,3 +57,33 @@ def test_pressure_is_the_barriers_flat_contact_pressure(block):
     assert pressed["mean_pressure_MPa"] == pytest.approx(pressed["normal_force_N"] / pressed["area_mm2"])
     assert 0.5 * p < pressed["mean_pressure_MPa"] <= p * 1.05
     assert rest["mean_pressure_MPa"] < pressed["mean_pressure_MPa"]
+
+
+@pytest.mark.slow
+@pytest.mark.data
+def test_paper_interfaces_converge_in_equilibrium_and_report_each_interface(tmp_path):
+    """Coarse anatomical model at 20 N with all of the paper's interfaces (muscle attachments bonded beyond
+    35 mm): converges, the supports carry the clamp force (1 %), and per interface the gaps and slip are
+    >= 0, the overlap of the originally coincident pairs and the barrier interpenetration stay below dhat,
+    the muscle-bone contact carries a pressure; the pairs slip (friction, not a bond) by less than the
+    needles move."""
+    import json
+
+    from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
+
+    res = run_pelvis_model(PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[20.0],
+                                        interfaces="paper", figures=False, crosscheck_thickness=False,
+                                        out=str(tmp_path)))
+    contact = json.loads((tmp_path / "pelvis_results.json").read_text(encoding="utf-8"))["contact"]
+    assert set(contact["interfaces"]) == {"needle-muscle", "muscle-bone", "bone-needle"}
+    a = contact["attachments"]
+    assert a["muscle_bone_faces_bonded"] > 0 and a["muscle_bone_faces_sliding"] > 0
+    (x,) = contact["per_force"]
+    assert set(contact["rest"]) == set(contact["interfaces"])
+    assert x["equilibrium_error"] < 0.01
+    for name, s in x["interfaces"].items():
+        dhat = contact["settings"][name]["dhat_mm"]
+        assert s["max_gap_opening_mm"] >= 0 and 0 <= s["mean_slip_mm"] <= s["max_slip_mm"], name
+        assert s["max_pair_interpenetration_mm"] < dhat and 0 <= s["max_interpenetration_mm"] < dhat, name
+        assert 0 < s["mean_pressure_MPa"] <= s["max_pressure_MPa"], name
+        assert s["max_slip_mm"] < res.results[0].max_needle_deformation_mm, name

@@ -66,14 +66,19 @@ class NeedleContact:
     def summary(self, forces, displacements) -> dict:
         """Interfaces, settings and per force the gap opening per interface and the interpenetration
         (mm), for the displacement fields solved at `forces` (N); "interfaces": per interface the
-        gaps, slip, contact pressure and interpenetration (`interface_state`)."""
+        gaps, slip, contact pressure and interpenetration (`interface_state`); "rest": the pressure and
+        normal force of the undeformed state (the barrier's prestress before the sides relax against it)."""
         per_force = []
         for force, u in zip(forces, displacements):
             state = self.state(u)
             gaps, penetration = _gaps(state)
             per_force.append({"force_N": force, "max_gap_opening_mm": gaps, "max_interpenetration_mm": penetration,
                               "interfaces": state})
-        return {"interfaces": dict(self.friction), "settings": self.settings_dict(), "per_force": per_force}
+        # the virtual gap's prestress: the pressure and normal force at zero displacement
+        rest = self.state(np.zeros_like(displacements[0])) if per_force else {}
+        return {"interfaces": dict(self.friction), "settings": self.settings_dict(), "per_force": per_force,
+                "rest": {k: {"mean_pressure_MPa": v["mean_pressure_MPa"], "normal_force_N": v["normal_force_N"]}
+                         for k, v in rest.items()}}
 
     def report(self, result) -> dict:
         """The "contact" field of the needle model's results (see `summary`)."""
