@@ -352,13 +352,52 @@ def test_coarse_solve_equilibrium_and_monotone(tmp_path):
 
 
 @pytest.mark.parametrize("args, field", [(["--force", "-1"], "force"), (["--order", "3"], "order"),
-                                         (["--needle-size", "0"], "needle_size")])
+                                         (["--needle-size", "0"], "needle_size"), (["--interfaces", "bogus"], "interfaces"),
+                                         (["--friction", "bogus-muscle=0.3"], "friction"),
+                                         (["--friction", "needle-muscle"], "--friction"),
+                                         (["--sliding-radius", "0"], "sliding_radius")])
 def test_cli_rejects_bad_input(args, field):
     code = (f"import sys; sys.argv = ['needletissue', 'fe', 'pelvis', *{args!r}];"
             "from needletissue.cli import main; main()")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ))
     assert r.returncode == 2, r.stderr
     assert field in r.stderr and "Traceback" not in r.stderr
+
+
+def test_muscle_attachments_stay_bonded_beyond_the_sliding_radius(coarse):
+    """split_contact with the paper's interfaces: muscle-bone faces farther than the sliding radius from
+    the needle axes keep shared nodes (bonded: they cannot slip or open), every split muscle-bone pair lies
+    within the radius (plus an element), sliding + bonded faces are all muscle-bone faces, and a radius
+    larger than the model bonds none."""
+    from needletissue.fem import TaggedMesh
+    from needletissue.fem.contact.mesh import interface_faces
+    from needletissue.models.contact import NeedleContact
+    from needletissue.models.pelvis.model import MATERIALS, _axis_distance, split_contact
+
+    tm = TaggedMesh(coarse.points, coarse.cells, coarse.regions, coarse.surfaces)
+    muscles = [r for r in tm.regions if MATERIALS[r] == "muscle"]
+    bones = ["hip_cortical", "hip_cancellous", "sacrum", "femur"]
+    total = len(interface_faces(tm, muscles, bones)[0])
+    contact = NeedleContact("paper", materials=MATERIALS)
+    split, info = split_contact(contact, tm, coarse.needle_axes, 25.0)
+    assert info["muscle_bone_faces_total"] == total
+    assert info["muscle_bone_faces_sliding"] + info["muscle_bone_faces_bonded"] <= total
+    assert info["muscle_bone_faces_bonded"] > 0 and info["muscle_bone_faces_sliding"] > 0
+    assert set(split.regions) == set(tm.regions)
+    assert all(np.array_equal(np.sort(split.regions[r]), np.sort(tm.regions[r])) for r in tm.regions)
+    bonded = interface_faces(split, muscles, bones)[0]  # faces still shared after the split
+    assert len(bonded) == info["muscle_bone_faces_bonded"]
+    (mb,) = [s for s in contact._split if s.name == "muscle-bone"]
+    assert len(mb.faces_a) >= info["muscle_bone_faces_sliding"]
+    assert info["muscle_bone_area_sliding_mm2"] + info["muscle_bone_area_bonded_mm2"] <= \
+        info["muscle_bone_area_total_mm2"] * (1 + 1e-12)
+    # (attached by their element's centroid: faces up to an element inside the radius)
+    axis = _axis_distance(split.points[mb.nodes_a], coarse.needle_axes)
+    assert axis.max() < 25.0 + 18.0
+    assert np.median(_axis_distance(split.points[bonded].mean(axis=1), coarse.needle_axes)) > 25.0
+    _, everywhere = split_contact(NeedleContact("paper", materials=MATERIALS), tm, coarse.needle_axes, 1000.0)
+    assert everywhere["muscle_bone_faces_sliding"] > info["muscle_bone_faces_sliding"]
+    assert everywhere["muscle_bone_faces_bonded"] < 0.5 * info["muscle_bone_faces_bonded"]
 
 
 def test_cli_names_a_label_map_off_the_ct_grid_and_a_needle_missing_the_bone(tmp_path):

@@ -45,6 +45,10 @@ def register(app, groups) -> None:
                                        "0.9; docs/contact.md)."),
         friction: list[str] = typer.Option(None, "--friction", help="Per-pair friction coefficient (>= 0), "
                                            "e.g. needle-muscle=0.3; repeat; makes that pair a contact."),
+        sliding_radius: float = typer.Option(None, "--sliding-radius",
+                                             help="Muscle-bone contact within this distance of the needle axes, "
+                                                  "mm; beyond it the muscles stay bonded to bone (their origins and "
+                                                  "insertions; default 35; 1000: every face slides)."),
         contact_dhat: float = typer.Option(None, "--contact-dhat",
                                            help="Contact barrier distance, mm (> 0; default 0.1)."),
         contact_eps_v: float = typer.Option(None, "--contact-eps-v",
@@ -83,8 +87,11 @@ def register(app, groups) -> None:
                "needle_size": ("needle_size", needle_size), "far_size": ("far_size", far_size),
                "order": ("order", order), "mesher": ("mesher", mesher), "needle_diameter": ("needle_diameter", needle_diameter),
                "si_joint": ("si_joint", si_joint), "interfaces": ("interfaces", interfaces),
-               "contact_dhat": ("contact_dhat", contact_dhat), "contact_eps_v": ("contact_eps_v", contact_eps_v)}
+               "contact_dhat": ("contact_dhat", contact_dhat), "contact_eps_v": ("contact_eps_v", contact_eps_v),
+               "sliding_radius": ("sliding_radius", sliding_radius)}
         kw.update(v for k, v in cli.items() if k in given)
+        if kw.get("sliding_radius", 0) is None:  # not given: the model's default
+            del kw["sliding_radius"]
         if ssm or ct is not None:  # a source given on the command line replaces the file's
             kw["source"] = "ssm" if ssm else "ct"
             if ssm:
@@ -126,8 +133,31 @@ def register(app, groups) -> None:
         con.print(t)
         last = d["results"][-1]["max_deformation_mm"]
         con.print("ranking (largest first): " + " > ".join(f"{n} {last[n]:.2f} mm" for n in d["ranking"]))
+        if d.get("contact"):
+            _print_contact(con, d["contact"])
         for th in d["thickness"]:
             con.print(f"{th['needle']}: muscle {th['muscle_mm']:.1f} mm, adipose {th['adipose_mm']:.1f} mm, "
                       f"total {th['total_mm']:.1f} mm")
         if out:
             con.print(f"written: {out}/")
+
+
+def _print_contact(con, contact: dict) -> None:
+    """Per force and interface: gap, slip, contact pressure, interpenetration; equilibrium."""
+    from rich.table import Table
+
+    a = contact.get("attachments", {})
+    if a:
+        con.print(f"muscle-bone: {a['muscle_bone_area_sliding_mm2']:.0f} mm2 sliding within "
+                  f"{a['sliding_radius_mm']:g} mm of the needles, {a['muscle_bone_area_bonded_mm2']:.0f} mm2 "
+                  "bonded (muscle attachments)")
+    t = Table(title="contact interfaces (friction: " + ", ".join(f"{k} {v:g}" for k, v in contact["interfaces"].items())
+              + ")")
+    for c in ("force N", "interface", "gap mm", "slip mm", "p max / mean MPa", "overlap mm", "equilibrium"):
+        t.add_column(c, justify="right")
+    for x in contact["per_force"]:
+        for name, s in x.get("interfaces", {}).items():
+            t.add_row(f"{x['force_N']:.0f}", name, f"{s['max_gap_opening_mm']:.3f}", f"{s['max_slip_mm']:.3f}",
+                      f"{s['max_pressure_MPa']:.3g} / {s['mean_pressure_MPa']:.3g}",
+                      f"{s['max_interpenetration_mm']:.3f}", f"{100 * x.get('equilibrium_error', float('nan')):.2f} %")
+    con.print(t)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 
+import numpy as np
 
 from needletissue.fem.contact import ContactSettings, ContactSurface, FrictionalContact, resolve_interfaces
 from needletissue.fem.contact.mesh import split_interfaces
@@ -51,12 +52,11 @@ class NeedleContact:
     def gaps(self, displacement) -> tuple[dict[str, float], float]:
         """Largest normal opening per interface (mm, > 0 = separated, e.g. behind the needle) and the
         largest interpenetration (mm) over all interfaces for a displacement field."""
-        gaps, penetration = {}, 0.0
-        for item in self.item_list:
-            gaps.update({k: float(max(0.0, v.max())) for k, v in item.gap_opening(displacement).items()})
-            state = item.contact_state(item.positions(displacement[item.surface.vertices]))
-            penetration = max(penetration, state["max_interpenetration_mm"])
-        return gaps, float(penetration)
+        return _gaps(self.state(displacement))
+
+    def state(self, displacement) -> dict[str, dict]:
+        """Per interface: gaps, slip, contact pressure, interpenetration (`interface_state`)."""
+        return {k: v for i in self.item_list for k, v in interface_state(i, displacement).items()}
 
     def settings_dict(self) -> dict:
         return {i.surface.interfaces[0].name: {
@@ -65,12 +65,20 @@ class NeedleContact:
 
     def summary(self, forces, displacements) -> dict:
         """Interfaces, settings and per force the gap opening per interface and the interpenetration
-        (mm), for the displacement fields solved at `forces` (N)."""
+        (mm), for the displacement fields solved at `forces` (N); "interfaces": per interface the
+        gaps, slip, contact pressure and interpenetration (`interface_state`); "rest": the pressure and
+        normal force of the undeformed state (the barrier's prestress before the sides relax against it)."""
         per_force = []
         for force, u in zip(forces, displacements):
-            gaps, penetration = self.gaps(u)
-            per_force.append({"force_N": force, "max_gap_opening_mm": gaps, "max_interpenetration_mm": penetration})
-        return {"interfaces": dict(self.friction), "settings": self.settings_dict(), "per_force": per_force}
+            state = self.state(u)
+            gaps, penetration = _gaps(state)
+            per_force.append({"force_N": force, "max_gap_opening_mm": gaps, "max_interpenetration_mm": penetration,
+                              "interfaces": state})
+        # the virtual gap's prestress: the pressure and normal force at zero displacement
+        rest = self.state(np.zeros_like(displacements[0])) if per_force else {}
+        return {"interfaces": dict(self.friction), "settings": self.settings_dict(), "per_force": per_force,
+                "rest": {k: {"mean_pressure_MPa": v["mean_pressure_MPa"], "normal_force_N": v["normal_force_N"]}
+                         for k, v in rest.items()}}
 
     def report(self, result) -> dict:
         """The "contact" field of the needle model's results (see `summary`)."""
@@ -108,6 +116,62 @@ class NeedleContact:
             self.item_list.append(FrictionalContact(model.field, surface, settings))
         self.item = self.item_list[0] if self.item_list else None
         return list(self.item_list)
+
+
+def _gaps(state: dict) -> tuple[dict[str, float], float]:
+    return ({k: v["max_gap_opening_mm"] for k, v in state.items()},
+            max((v["max_interpenetration_mm"] for v in state.values()), default=0.0))
+
+
+def interface_state(item, displacement) -> dict[str, dict]:
+    """Per interface of a FrictionalContact item at a displacement field (all mesh nodes, mm):
+
+    max_gap_opening_mm / max_pair_interpenetration_mm: largest normal separation / overlap of the
+      originally coincident node pairs (normal of side a);
+    max_slip_mm, mean_slip_mm: tangential relative displacement of those pairs (nodes tied at a
+      bonded ring are not pairs: they cannot slip);
+    max_pressure_MPa, mean_pressure_MPa, normal_force_N: the barrier's normal force on side a's
+      vertices over their tributary area (mean = total force / interface area); it includes the
+      rest prestress of the virtual gap (docs/contact.md);
+    min_barrier_distance_mm, max_interpenetration_mm: smallest distance of the collision surfaces
+      and the virtual gap minus it (< dhat by construction of the barrier);
+    area_mm2, pairs: side a's interface area and the number of split node pairs.
+    Assumes an interface per item or items whose interfaces share no vertex (NeedleContact's)."""
+    from needletissue.fem.contact.item import _collisions
+    from needletissue.fem.contact.mesh import triangles
+
+    s = item.surface
+    points = np.asarray(item.field.region.mesh.points, dtype=float)
+    V = item.positions(displacement[s.vertices])
+    collisions = _collisions()
+    collisions.build(item.cmesh, V, item.settings.dhat)
+    force = -item.barrier.gradient(collisions, item.cmesh, V).reshape(-1, 3)
+    dmin = float(np.sqrt(collisions.compute_minimum_distance(item.cmesh, V))) if len(collisions) else item.settings.dhat
+    out = {}
+    for itf in s.interfaces:
+        ta = triangles(itf.faces_a)
+        fn = np.cross(points[ta[:, 1]] - points[ta[:, 0]], points[ta[:, 2]] - points[ta[:, 0]])  # 2 area n
+        normal, area = np.zeros((len(points), 3)), np.zeros(len(points))
+        for j in range(3):
+            np.add.at(normal, ta[:, j], fn)
+            np.add.at(area, ta[:, j], np.linalg.norm(fn, axis=1) / 6)
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        nodes = np.unique(ta)
+        # side b lies along side a's outward normal: the barrier pushes side a against it
+        pressing = np.maximum(-np.einsum("ij,ij->i", force[np.searchsorted(s.vertices, nodes)], normal[nodes]), 0)
+        jump = displacement[itf.nodes_b] - displacement[itf.nodes_a]
+        opening = np.einsum("ij,ij->i", jump, normal[itf.nodes_a])
+        slip = np.linalg.norm(jump - opening[:, None] * normal[itf.nodes_a], axis=1)
+        out[itf.name] = {
+            "max_gap_opening_mm": float(max(0.0, opening.max(initial=0.0))),
+            "max_pair_interpenetration_mm": float(max(0.0, -opening.min(initial=0.0))),
+            "max_slip_mm": float(slip.max(initial=0.0)), "mean_slip_mm": float(slip.mean()) if len(slip) else 0.0,
+            "max_pressure_MPa": float((pressing / area[nodes]).max(initial=0.0)),
+            "mean_pressure_MPa": float(pressing.sum() / area[nodes].sum()),
+            "normal_force_N": float(pressing.sum()),
+            "min_barrier_distance_mm": dmin, "max_interpenetration_mm": float(max(0.0, item.settings.gap - dmin)),
+            "area_mm2": float(area[nodes].sum()), "pairs": int(len(itf.nodes_a))}
+    return out
 
 
 @dataclass

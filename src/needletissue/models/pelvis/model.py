@@ -19,8 +19,9 @@ muscle and bone interfaces frictional contacts (needletissue.fem.contact; docs/c
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -87,6 +88,11 @@ class PelvisConfig:
     interfaces      "bonded" (one conforming mesh) or "paper" (frictional contact: needle-muscle 0.3,
                     muscle-bone 0.3, bone-needle 0.9; docs/contact.md)
     friction        {"needle-muscle": 0.3, ...} per-pair friction coefficients (>= 0); each becomes a contact
+    sliding_radius  muscle-bone contact only within this distance of a needle axis, mm; beyond it the muscle
+                    elements stay bonded (standing in for the muscles' origins and insertions: gluteals on the
+                    outer ilium and the trochanters, iliacus in the iliac fossa; docs/contact.md). A radius
+                    larger than the model (e.g. 1000) lets every muscle-bone face slide: friction alone then
+                    holds the soft tissue on the skeleton
     contact_dhat    contact barrier distance = largest interpenetration, mm
     contact_eps_v   friction smoothing: slip per load increment below which an interface sticks, mm
     """
@@ -118,6 +124,7 @@ class PelvisConfig:
     si_joint: str = "fixed"
     interfaces: str = "bonded"
     friction: dict = field(default_factory=dict)
+    sliding_radius: float = 35.0
     contact_dhat: float | None = None  # None: ContactSettings' default
     contact_eps_v: float | None = None
     solver: str = "auto"
@@ -141,6 +148,8 @@ class PelvisConfig:
             raise InputError("interfaces", f"must be 'bonded' or 'paper', got {self.interfaces!r}")
         for name, mu in self.friction.items():
             check_number(f"friction {name}", mu, ge=0)
+            check_interface_name(name)
+        check_number("sliding_radius", self.sliding_radius, gt=0)
         for name in ("contact_dhat", "contact_eps_v"):
             if getattr(self, name) is not None:
                 check_number(name, getattr(self, name), gt=0)
@@ -162,6 +171,80 @@ class PelvisConfig:
         if self.formulation not in ("displacement", "mixed"):
             raise InputError("formulation", f"must be 'displacement' or 'mixed', got {self.formulation!r}")
         tissue_bulk(MATERIALS, self.tissue_bulk_ratio)  # checks the ratio
+
+
+def check_interface_name(name: str) -> None:
+    """InputError naming `friction` unless `name` is 'groupA-groupB' with groups of this model's regions
+    (material families such as muscle, bone, needle, adipose, clamp, or region names): before meshing."""
+    from needletissue.fem.contact.mesh import group_regions, material_groups, parse_interface_name
+
+    groups = material_groups(MATERIALS)
+    regions = SimpleNamespace(regions=MATERIALS)  # group_regions reads mesh.regions
+    try:
+        ga, gb = parse_interface_name(name)
+    except InputError as exc:
+        raise InputError("friction", str(exc).split(": ", 1)[1]) from None
+    for g in (ga, gb):
+        if not group_regions(regions, g, groups):
+            raise InputError("friction", f"interface {name!r}: no region or material {g!r}; allowed: "
+                                         f"{', '.join(sorted(set(groups) | set(MATERIALS)))}")
+
+
+# relative residual (free dofs / reactions) of a contact solve: with muscle-bone in contact Newton's residual
+# floors at 4e-8..1e-7 near the solution (the full step repeats; docs/contact.md), so 1e-8 cut back at the same
+# state until it failed; 1e-6 of the reactions is < 3e-4 N at 300 N (coarse mesh: 300 N, no cut-back)
+CONTACT_TOL = 1e-6
+ATTACHED = "@attached"  # suffix of the muscle cells kept bonded to bone while the interfaces are split
+
+
+def _axis_distance(x: np.ndarray, needle_axes) -> np.ndarray:
+    """Distance (mm) of points x (n, 3) to the nearest needle axis segment (bottom in bone, top in clamp)."""
+    out = []
+    for a, b in needle_axes:
+        a, d = np.asarray(a, float), np.asarray(b, float) - np.asarray(a, float)
+        t = np.clip((x - a) @ d / (d @ d), 0.0, 1.0)
+        out.append(np.linalg.norm(x - a - t[:, None] * d, axis=1))
+    return np.min(out, axis=0)
+
+
+def split_contact(contact, mesh, needle_axes, sliding_radius: float):
+    """Split the contact interfaces of `mesh` (NeedleContact.prepare), keeping the muscle elements farther
+    than `sliding_radius` from the needle axes bonded to their neighbours (muscle attachments to bone).
+
+    Those elements are set aside in regions "<muscle>@attached" (in no contact group) during the split, so
+    their faces stay conforming; the nodes where sliding and attached muscle meet stay tied (split_interfaces).
+    Returns the split mesh and the muscle-bone faces (count and area mm2): total, bonded (corners still shared
+    after the split, including contact faces whose corners are all tied) and sliding (in contact, a corner
+    split); the rest (total - bonded - sliding) touch a node split for another interface (the needle rings)
+    and are neither."""
+    from needletissue.fem.contact.mesh import interface_faces
+
+    muscles = [r for r in mesh.regions if MATERIALS.get(r) == "muscle"]
+    bones = [r for r in mesh.regions if MATERIALS.get(r, "").endswith("_bone")]
+    regions = dict(mesh.regions)
+    for r in muscles:
+        ids = mesh.regions[r]
+        far = _axis_distance(mesh.points[mesh.cells[ids][:, :4]].mean(axis=1), needle_axes) > sliding_radius
+        regions[r], regions[r + ATTACHED] = ids[~far], ids[far]
+    regions = {r: ids for r, ids in regions.items() if len(ids)}
+    split = contact.prepare(replace(mesh, regions=regions))
+    none = np.zeros(0, int)
+    merged = replace(split, regions={r: np.sort(np.concatenate([split.regions.get(r, none),
+                                                                split.regions.get(r + ATTACHED, none)]))
+                                     for r in mesh.regions})
+
+    def area(faces):
+        p = merged.points[faces[:, :3]]
+        return float(0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum())
+
+    no = np.zeros((0, 3), int)
+    faces = {"total": interface_faces(mesh, muscles, bones)[0] if muscles and bones else no,
+             "bonded": interface_faces(merged, muscles, bones)[0] if muscles and bones else no,
+             "sliding": next((s.faces_a[np.isin(s.faces_a[:, :3], s.nodes_a).any(axis=1)]
+                              for s in contact._split if s.name == "muscle-bone"), no)}
+    info = {"sliding_radius_mm": sliding_radius, **{f"muscle_bone_faces_{k}": len(f) for k, f in faces.items()},
+            **{f"muscle_bone_area_{k}_mm2": area(f) for k, f in faces.items()}}
+    return merged, info
 
 
 @dataclass
@@ -379,7 +462,8 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
                                 ContactSettings(**{k: v for k, v in (("dhat", config.contact_dhat),
                                                                      ("eps_v", config.contact_eps_v)) if v is not None}),
                                 materials=MATERIALS)
-        tm_solve = contact.prepare(tm_solve)  # split the contact interfaces (duplicate their nodes)
+        # split the contact interfaces (duplicate their nodes); muscle attachments stay bonded
+        tm_solve, attachments = split_contact(contact, tm_solve, pm.needle_axes, config.sliding_radius)
     mats = {r: MATERIALS[r] for r in tm.regions}
     model = FEModel(tm_solve, mats, order=config.order, formulation=config.formulation,
                     bulk=tissue_bulk(mats, config.tissue_bulk_ratio))
@@ -394,7 +478,8 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
     bcs.append(SurfaceForce("gripper", total=tuple(fmax * fdir)))
     factors = [f / fmax for f in config.forces]
     fe = solve(model, bcs, load_factors=factors, solver=config.solver, progress=config.progress, items=items,
-               predictor=config.formulation == "mixed" and not items)  # as the needle model (bench.md)
+               predictor=config.formulation == "mixed" and not items,  # as the needle model (bench.md)
+               **({"tol": CONTACT_TOL} if items else {}))
     t_solve = time.perf_counter() - t0 - t_mesh - t_model
 
     qm = model.mesh
@@ -459,7 +544,12 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
         ritz=ritz,
     )
     if contact is not None:
-        res.contact = contact.summary(config.forces, [r.displacement for r in fe])
+        res.contact = {**contact.summary(config.forces, [r.displacement for r in fe]), "attachments": attachments,
+                       "newton_tol": CONTACT_TOL}
+        for x, load in zip(res.contact["per_force"], loads):  # the supports carry the clamp force
+            reaction = np.sum([np.asarray(v) for v in load.reactions_N.values()], axis=0)
+            x["equilibrium_error"] = float(np.linalg.norm(reaction + load.force_N * fdir) / load.force_N)
+            x["newton_iterations"] = load.newton_iterations
     if config.source == "ct" and config.crosscheck_thickness and not config.segmentation:
         res.thickness_img = thickness_crosscheck(config, pm)
     res.comparison = comparison_table(res)
