@@ -18,11 +18,13 @@ import json
 import time
 
 import felupe
+import ipctk
+from dataclasses import replace
 import numpy as np
 
 from needletissue.fem.contact import ContactSettings
-from needletissue.fem.contact.item import CollisionFreeStep
-from needletissue.models.contact import NeedleContact
+from needletissue.fem.contact.item import CollisionFreeStep, StallLinesearch
+from needletissue.models.contact import NEEDLE_EPS_V, NEEDLE_GAP_FRACTION, NeedleContact
 from needletissue.models.needle import NeedleModelConfig, run_needle_model, with_geometry
 
 
@@ -33,30 +35,81 @@ def main(argv=None):
     ap.add_argument("--needle-mesh-size", type=float, default=2.0)
     ap.add_argument("--far-mesh-size", type=float, default=20.0)
     ap.add_argument("--forces", default="100,200,300", help="N, comma separated")
-    ap.add_argument("--eps-v", type=float, default=ContactSettings().eps_v)
+    ap.add_argument("--eps-v", type=float, default=NEEDLE_EPS_V)
+    ap.add_argument("--gap-fraction", type=float, default=NEEDLE_GAP_FRACTION)
+    ap.add_argument("--kappa-scale", default="", help="PAIR=FACTOR,...: barrier stiffness x FACTOR")
+    ap.add_argument("--no-project", action="store_true", help="stalled Newton: line search without PSD projection")
     ap.add_argument("--bonded", action="store_true")
     a = ap.parse_args(argv)
 
     cfg = with_geometry(NeedleModelConfig(forces=tuple(float(f) for f in a.forces.split(",")), ritz=False),
                         needles=a.needles, mesh_size=a.mesh_size, needle_mesh_size=a.needle_mesh_size,
                         far_mesh_size=a.far_mesh_size)
-    contact = NeedleContact("paper", settings=ContactSettings(eps_v=a.eps_v))
+    contact = NeedleContact("paper", settings=ContactSettings(eps_v=a.eps_v, gap_fraction=a.gap_fraction))
+    if a.no_project:
+        StallLinesearch.project = False
+    scale = {k: float(v) for k, v in (x.split("=") for x in a.kappa_scale.split(",") if x)}
+    build = contact.items
+
+    def items(model):
+        out = build(model)
+        for i in out:
+            f = scale.get(i.surface.interfaces[0].name)
+            if f:
+                i.settings = replace(i.settings, stiffness=f * i.settings.kappa)
+                i.barrier = ipctk.BarrierPotential(i.settings.dhat, i.settings.kappa, True)
+        return out
+
+    contact.items = items
     plugins_ = []  # the plugins of the running Newton solve
 
     class Log(felupe.Plugin):
         def after_iteration(self, context, st):
             ccd = next((p.alphas[-3:] for p in plugins_ if isinstance(p, CollisionFreeStep)), [])
+            dx = np.asarray(st.dx)[:st.x[0].values.size].reshape(-1, 3)
+            at = int(np.argmax(np.linalg.norm(dx, axis=1)))
             print(json.dumps({
                 "it": st.iteration, "residual": float(st.fnorm), "step_norm": float(st.xnorm),
                 "max_correction_mm": float(np.abs(np.asarray(st.dx)).max()),
+                "max_correction_at_mm": [round(float(c), 2) for c in st.x[0].region.mesh.points[at]],
                 "ccd_fractions": [round(float(x), 4) for x in ccd],
                 "min_distance_mm": [i.results.info.get("min_distance_mm") for i in contact.item_list],
+                "damped": next((p.level is not None for p in plugins_ if isinstance(p, StallLinesearch)), None),
+                "alphas": next((p.alphas[-1][-1:] for p in plugins_ if isinstance(p, StallLinesearch) and p.alphas and p.alphas[-1]), None),
+                "linear_residual": linres[-1] if linres else None,
                 "cpu_s": round(time.process_time(), 1)}), flush=True)
+
+    linres = []  # relative residual of the linear solve, |K dx + r| / |r| on the free dofs
+
+    class LinCheck(felupe.Plugin):
+        def after_linear_solve(self, context, st):
+            if isinstance(st.jac, tuple):  # the bonded path's (upper K11, K10)
+                return
+            d1 = context.dof1
+            K = st.jac.tocsr()
+            dx = np.asarray(st.dx)
+            r = (K @ dx)[d1] + st.fun[d1]
+            linres.append(float(np.linalg.norm(r) / np.linalg.norm(st.fun[d1])))
 
     newton = felupe.newtonraphson
 
+    def closest(item):
+        """Rest position (mm) of the first vertex of the closest collision pair and its distance."""
+        V, c, m = item.positions(), item.collisions, item.cmesh
+        best = (np.inf, None)
+        for i in range(len(c)):
+            col = c[i]
+            d = col.compute_distance(col.dof(V, m.edges, m.faces))
+            if d < best[0]:
+                best = (d, col.vertex_ids(m.edges, m.faces))
+        if best[1] is None:
+            return None
+        v = [int(x) for x in best[1] if x >= 0]
+        return {"d_mm": float(np.sqrt(best[0])),
+                "at_mm": [round(float(x), 2) for x in item.rest[v[0]] - item.surface.offset[v[0]]]}
+
     def logged(*args, plugins=None, **kw):
-        plugins_[:] = [*(plugins or []), Log()]
+        plugins_[:] = [LinCheck(), *(plugins or []), Log()]
         try:
             res = newton(*args, plugins=plugins_, **kw)
         except Exception as exc:
@@ -64,7 +117,8 @@ def main(argv=None):
             raise
         loads = [i for i in kw.get("items", []) if isinstance(i, felupe.PointLoad)]
         force = np.linalg.norm(sum(np.asarray(i.values).reshape(-1, 3).sum(0) for i in loads)) if loads else np.nan
-        print(f"CONVERGED force={force:.3f} N iterations={res.iterations} cpu={time.process_time():.1f} s", flush=True)
+        print(f"CONVERGED force={force:.3f} N iterations={res.iterations} cpu={time.process_time():.1f} s "
+              f"closest={json.dumps([closest(i) for i in contact.item_list])}", flush=True)
         return res
 
     felupe.newtonraphson = logged

@@ -36,3 +36,30 @@ def test_bad_contact_cli_options_are_one_line_exit_2(option, value, named):
 # The needle model with the paper's interfaces against bonded on the same coarse mesh (more compliant,
 # a gap behind the pin, interpenetration below dhat) is the README's contact example, run and checked by
 # tests/test_readme.py.
+
+
+@pytest.mark.slow
+def test_paper_interfaces_reach_300_N_in_equilibrium_without_interpenetration():
+    """The default contact case (one needle, the paper's interfaces, 100/200/300 N) at a reduced mesh
+    size (tissue 8, needle 2.5, far 30 mm): converges to 300 N; the reactions balance the applied force
+    (contact forces are internal) to 1 %; no interface interpenetrates by dhat; contact is more
+    compliant than bonded on the same mesh (the tissue slides along the needle and opens behind it)."""
+    import numpy as np
+
+    from needletissue.models.contact import NeedleContact
+    from needletissue.models.needle import NeedleModelConfig, run_needle_model, with_geometry
+
+    cfg = with_geometry(NeedleModelConfig(forces=(100.0, 200.0, 300.0), ritz=False), needles=1,
+                        mesh_size=8.0, needle_mesh_size=2.5, far_mesh_size=30.0)
+    contact = NeedleContact("paper")
+    r = run_needle_model(cfg, **contact.hooks())
+    bonded = run_needle_model(cfg)
+    dhat = contact.item_list[0].settings.dhat
+    for res, row, b in zip(r.results, r.extra["contact"]["per_force"], bonded.results):
+        applied = res.force_N * np.asarray(cfg.direction)
+        reactions = np.sum([np.asarray(v) for v in res.fe.reaction_forces.values()], axis=0)
+        assert np.linalg.norm(reactions + applied) < 0.01 * res.force_N
+        assert row["max_interpenetration_mm"] < dhat
+        assert set(row["interfaces"]) == {"needle-muscle", "muscle-bone", "bone-needle"}
+        assert row["interfaces"]["bone-needle"]["normal_force_N"] > 0
+        assert res.max_needle_deformation_mm > 1.02 * b.max_needle_deformation_mm

@@ -61,8 +61,8 @@ def register(app: typer.Typer, groups) -> None:
                                                      "(> 0; default 0.1): largest interpenetration; smaller is "
                                                      "stiffer and harder to converge (docs/contact.md)."),
         contact_eps_v: Optional[float] = typer.Option(None, "--contact-eps-v", help="Friction smoothing, mm of "
-                                                      "slip per load increment (> 0; default 0.001) below which "
-                                                      "an interface sticks."),
+                                                      "slip per load increment (> 0; default 0.01) below which "
+                                                      "an interface sticks (docs/contact.md)."),
         config_file: Optional[Path] = typer.Option(None, "--config", help="config.toml of an earlier `fe needle "
                                                    "--out` run (tables needle_model, contact; units mm, N): runs "
                                                    "it again; options given on the command line override it."),
@@ -101,13 +101,13 @@ def register(app: typer.Typer, groups) -> None:
         hooks = {}
         if interfaces != "bonded" or pairs:
             from needletissue.fem.contact import ContactSettings
-            from needletissue.models.contact import NeedleContact
+            from needletissue.models.contact import NEEDLE_EPS_V, NEEDLE_GAP_FRACTION, NeedleContact
 
             from needletissue.errors import check_number
 
             given_settings = {k: check_number(f"--contact-{k.replace('_', '-')}", v, gt=0)
                               for k, v in (("dhat", contact_dhat), ("eps_v", contact_eps_v)) if v is not None}
-            settings = ContactSettings(**given_settings)
+            settings = ContactSettings(**{"eps_v": NEEDLE_EPS_V, "gap_fraction": NEEDLE_GAP_FRACTION, **given_settings})
             hooks = NeedleContact(interfaces, pairs, settings).hooks()
         if out is not None:  # a file or an unwritable place: one error line now, not after meshing
             from needletissue.runinfo import check_output_dir

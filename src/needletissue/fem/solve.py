@@ -444,13 +444,14 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     if searching:
         # no Armijo test on |r|: a barrier's residual is no merit function (measured: it stalled the
         # needle model at load factor 0.005); reject only inverted and non-finite trials
-        plugins.insert(0, fem.LinesearchPlugin(admissible=True, residual=False, max_halvings=10,
-                                               criteria=[lambda trial: trial.finite]))
-        bounded = [i for i in items if hasattr(i, "step_bound")]  # contact: a CCD-bounded step first
-        if bounded:
-            from needletissue.fem.contact.item import CollisionFreeStep
+        bounded = [i for i in items if hasattr(i, "step_bound")]
+        if bounded:  # contact: a CCD-bounded step first; a slope line search once Newton stalls
+            from needletissue.fem.contact.item import CollisionFreeStep, StallLinesearch
 
-            plugins.insert(0, CollisionFreeStep(bounded))
+            plugins[:0] = [CollisionFreeStep(bounded), StallLinesearch(bounded)]
+        else:
+            plugins.insert(0, fem.LinesearchPlugin(admissible=True, residual=False, max_halvings=10,
+                                                   criteria=[lambda trial: trial.finite]))
     mixed = [b for b in bodies if isinstance(b, fem.SolidBodyNearlyIncompressible)]
     pressure = _pressure_plugin(fem, mixed)
     plugins.insert(0, pressure)

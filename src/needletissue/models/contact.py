@@ -18,6 +18,18 @@ from needletissue.fem.contact import ContactSettings, ContactSurface, Frictional
 from needletissue.fem.contact.mesh import split_interfaces
 
 
+NEEDLE_EPS_V = 0.01
+"""The needle model's friction smoothing (mm of slip per load increment): with ContactSettings' 0.001
+Newton chattered between stick and slip from the second increment on (docs/contact.md)."""
+NEEDLE_GAP_FRACTION = 0.95
+"""The split sides' virtual gap (x dhat): the rest prestress of the stiffer bone-needle barrier stays
+near 1 % of the bone's E (0.9: 5 %)."""
+PRESSURE_FRACTION = {"bone-needle": 1.0}
+"""Barrier pressure at dhat/2 per interface (x E of the softer side; others 0.1): the pin presses the
+bone with ~30 MPa at 300 N (beam on an elastic foundation, 30 mm deep), and with 0.1 E the cortical
+rim squeezed the barrier to 1e-5 mm of dhat 0.1, where Newton stagnated (docs/contact.md)."""
+
+
 @dataclass
 class NeedleContact:
     """Interfaces of the needle model as contact pairs.
@@ -110,8 +122,11 @@ class NeedleContact:
         for itf in self._split:
             modulus = min(3.0 * materials.get(names.get(r, r)).initial_shear_modulus
                           for r in itf.regions_a + itf.regions_b)
-            settings = self.settings or ContactSettings()
-            settings = replace(settings, youngs_modulus=modulus) if self.settings is None or self.settings.stiffness is None else settings
+            settings = self.settings or ContactSettings(eps_v=NEEDLE_EPS_V, gap_fraction=NEEDLE_GAP_FRACTION)
+            if settings.stiffness is None:  # PRESSURE_FRACTION: the needle model's pin (materials None)
+                fraction = PRESSURE_FRACTION.get(itf.name) if self.materials is None else None
+                settings = replace(settings, youngs_modulus=modulus,
+                                   pressure_fraction=fraction or settings.pressure_fraction)
             surface = ContactSurface.build(model.mesh.points, [itf], self.friction, gap=settings.gap)
             self.item_list.append(FrictionalContact(model.field, surface, settings))
         self.item = self.item_list[0] if self.item_list else None

@@ -33,7 +33,8 @@ from functools import lru_cache
 
 import ipctk
 import numpy as np
-from felupe import Plugin
+from felupe import LinesearchPlugin, Plugin
+from felupe.plugins import LinesearchTrial
 from felupe.mechanics import Assemble, Results
 from scipy.sparse import coo_matrix, csr_matrix
 
@@ -58,6 +59,7 @@ class ContactSettings:
     gap_fraction: the coincident sides start gap_fraction * dhat apart for the barrier: < 1 keeps
       the barrier slightly active at rest (a tiny prestress, but a positive contact stiffness, so a
       body held only by contact is not singular at the first iteration).
+    pressure_fraction: the default stiffness carries pressure_fraction * youngs_modulus at d = dhat/2.
     """
 
     dhat: float = 1e-1
@@ -66,6 +68,7 @@ class ContactSettings:
     eps_v: float = 1e-3
     lag: str = "iteration"
     gap_fraction: float = 0.9
+    pressure_fraction: float = 0.1
 
     def __post_init__(self):
         check_number("contact.dhat", self.dhat, gt=0)
@@ -74,6 +77,7 @@ class ContactSettings:
         if self.stiffness is not None:
             check_number("contact.stiffness", self.stiffness, gt=0)
         check_number("contact.gap_fraction", self.gap_fraction, gt=0, le=1)
+        check_number("contact.pressure_fraction", self.pressure_fraction, gt=0)
         if self.lag not in ("iteration", "step"):
             raise InputError("contact.lag", f"must be 'iteration' or 'step', got {self.lag!r}")
 
@@ -86,16 +90,16 @@ class ContactSettings:
     def kappa(self) -> float:
         if self.stiffness is not None:
             return float(self.stiffness)
-        return default_stiffness(self.youngs_modulus, self.dhat)
+        return default_stiffness(self.youngs_modulus, self.dhat, self.pressure_fraction)
 
 
-def default_stiffness(youngs_modulus: float, dhat: float) -> float:
-    """Barrier stiffness (MPa/mm) at which a flat contact carries a pressure of 0.1 E at d = dhat/2.
+def default_stiffness(youngs_modulus: float, dhat: float, fraction: float = 0.1) -> float:
+    """Barrier stiffness (MPa/mm) at which a flat contact carries a pressure of `fraction` E at d = dhat/2.
 
     Higher pressures push d further towards 0 but never through it. The pressure per unit stiffness
     of ipctk's area-weighted barrier is measured on a flat patch (``unit_pressure``), not assumed.
     """
-    return 0.1 * youngs_modulus / unit_pressure(dhat, 0.5 * dhat)
+    return fraction * youngs_modulus / unit_pressure(dhat, 0.5 * dhat)
 
 
 @lru_cache(maxsize=64)
@@ -258,6 +262,83 @@ class CollisionFreeStep(Plugin):
             st.dx = self.fraction * alpha * st.dx
 
 
+class StallLinesearch(LinesearchPlugin):
+    """FElupe line search for contact runs (after `CollisionFreeStep`): Newton's full step (halved
+    only while inadmissible: det F <= 0 or a non-finite residual) until the residual stalls, i.e. the
+    last `patience` iterations did not go below `progress` x the best before them (a cycle, docs/contact.md);
+    then, until the residual falls to `recover` x its best at the stall or stalls again, the contact items' Hessians
+    are projected to PSD (every step a descent direction of the potential) and the step is searched
+    on the potential's slope s(a) = r(x + a dx) . dx: a trial is accepted when s(a) <= eta |s(0)| or
+    the residual contracts to `contraction` |r(0)|; a rejected one's a moves to the slope's zero
+    (linear interpolation, within [0.1, 0.9] of it). Easy increments keep Newton's quadratic
+    convergence (no stall, no projection)."""
+
+    project = True
+    progress = 0.5  # a residual counts as progress below this x the best before it
+
+    def __init__(self, items, patience: int = 2, recover: float = 1e-2, eta: float = 0.5,
+                 contraction: float = 0.9, max_trials: int = 10):
+        super().__init__(admissible=True, residual=False, max_halvings=max_trials,
+                         criteria=[lambda trial: trial.finite])
+        self.items = [i for i in items if hasattr(i, "project")]
+        self.patience, self.recover = patience, recover
+        self.eta, self.contraction = eta, contraction
+        self.fnorms: list[float] = []
+        self.level = None  # best residual at the stall; None: full Newton steps
+        self.stalls = 0
+
+    def _damp(self, level):
+        self.level = level
+        for i in self.items:
+            i.project = level is not None and self.project
+
+    def before_newton(self, context, st):
+        super().before_newton(context, st)
+        self.fnorms = []
+        self._damp(None)
+
+    def after_iteration(self, context, st):
+        self.fnorms.append(float(st.fnorm))
+        fn, k = self.fnorms, self.patience
+        if len(fn) > k and min(fn[-k:]) >= self.progress * min(fn[:-k]):  # stalled: switch full <-> damped
+            self.stalls += 1
+            self.fnorms = [fn[-1]]
+            self._damp(min(fn) if self.level is None else None)
+        elif self.level is not None and fn[-1] < self.recover * self.level:
+            self.fnorms = [fn[-1]]
+            self._damp(None)
+
+    def after_linear_solve(self, context, st):
+        if self.level is None:
+            return super().after_linear_solve(context, st)
+        from felupe.tools._newton import NewtonConvergenceError, _restore, _snapshot
+
+        x, dx = st.x, st.dx
+        dof1 = slice(None) if context.dof1 is None else context.dof1
+        s0 = float(np.dot(st.fun[dof1], dx[dof1]))
+        r0 = float(np.linalg.norm(st.fun[dof1]))
+        descent = s0 < 0
+        snapshot = _snapshot(x)
+        alpha = 1.0
+        for k in range(self.max_halvings + 1):
+            _restore(x, snapshot)
+            trial = LinesearchTrial(context, st, context.update(x, alpha * dx), alpha, alpha * dx, k)
+            if self.check_admissible(trial) and trial.finite:
+                s = float(np.dot(trial.fun[dof1], dx[dof1]))
+                if (not descent or s <= self.eta * abs(s0)
+                        or np.linalg.norm(trial.fun[dof1]) <= self.contraction * r0):
+                    st.x, st.fun, st.dx, st.alpha, st.updated = trial.x, trial.fun, trial.dx, alpha, True
+                    self.alphas[-1].append(alpha)
+                    return
+                alpha *= float(np.clip(-s0 / (s - s0), 0.1, 0.9))  # the slope's zero, s linear in a
+            else:
+                alpha *= 0.5
+        _restore(x, snapshot)
+        for item in context.items or []:
+            item.field.link(x)
+        raise NewtonConvergenceError(f"contact line search: no admissible step in {self.max_halvings + 1} trials")
+
+
 class _ContactResults(Results):
     """FElupe calls update_statevars() after a converged Newton solve: accept the displacements as
     the new slip reference and, for lag="step", refresh the lagged normal forces/tangent bases."""
@@ -317,6 +398,7 @@ class FrictionalContact:
         self._accepted = None  # (slip reference, lag) with which the last converged step was solved
         self._base = None  # displacements of the last tangent (the Newton iterate); None: the converged ones
         self._state = None
+        self.project = False  # PSD-projected Hessians (StallLinesearch sets it while Newton stalls)
         self.assemble = Assemble(vector=self._vector, matrix=self._matrix)
 
     # -- helpers -------------------------------------------------------------------------------
@@ -411,8 +493,9 @@ class FrictionalContact:
         if not s["admissible"]:
             return csr_matrix((n, n))
         self._base = s["u"].copy()
-        # exact Hessians: a PSD projection (CLAMP) made Newton converge linearly (measured)
-        psd = ipctk.PSDProjectionMethod.NONE
+        # exact Hessians: a PSD projection (CLAMP) made Newton converge linearly (measured); only
+        # while Newton stalls (StallLinesearch)
+        psd = ipctk.PSDProjectionMethod.CLAMP if self.project else ipctk.PSDProjectionMethod.NONE
         H = self.barrier.hessian(self.collisions, self.cmesh, s["V"], psd)
         if len(self.tangential) > 0 and self.settings.lag == "iteration":
             # consistent: the friction force's derivative by the slip and by the state its normal
@@ -465,19 +548,22 @@ class FrictionalContact:
         tangential = self._tangential(V, collisions, lag)
         return -self._gradient(V, collisions, tangential, np.asfortranarray(u - reference)).reshape(-1, 3)
 
-    def gap_opening(self, displacement: np.ndarray) -> dict[str, np.ndarray]:
-        """Normal opening (mm, > 0 = separated) of each originally coincident node pair per interface."""
-        out = {}
+    def _pairs(self, displacement):
+        """Per interface: the jump u_b - u_a of each originally coincident node pair, side a's unit
+        normal there (rest state), and the nodal areas of side a (mm^2, a third of the adjacent
+        triangles', rest state) on all mesh points."""
         points = np.asarray(self.field.region.mesh.points, dtype=float)
         for itf in self.surface.interfaces:
             ta = triangles(itf.faces_a)
-            n = np.zeros((len(points), 3))
+            n, area = np.zeros((len(points), 3)), np.zeros(len(points))
             p0, p1, p2 = (points[ta[:, j]] for j in range(3))
             fn = np.cross(p1 - p0, p2 - p0)
             for j in range(3):
                 np.add.at(n, ta[:, j], fn)
-            na = n[itf.nodes_a]
-            na /= np.linalg.norm(na, axis=1, keepdims=True)
-            jump = displacement[itf.nodes_b] - displacement[itf.nodes_a]
-            out[itf.name] = np.einsum("ij,ij->i", jump, na)
-        return out
+                np.add.at(area, ta[:, j], np.linalg.norm(fn, axis=1) / 6)
+            na = n[itf.nodes_a] / np.linalg.norm(n[itf.nodes_a], axis=1, keepdims=True)
+            yield itf, displacement[itf.nodes_b] - displacement[itf.nodes_a], na, area
+
+    def gap_opening(self, displacement: np.ndarray) -> dict[str, np.ndarray]:
+        """Normal opening (mm, > 0 = separated) of each originally coincident node pair per interface."""
+        return {itf.name: np.einsum("ij,ij->i", jump, na) for itf, jump, na, _ in self._pairs(displacement)}
