@@ -548,22 +548,19 @@ class FrictionalContact:
         tangential = self._tangential(V, collisions, lag)
         return -self._gradient(V, collisions, tangential, np.asfortranarray(u - reference)).reshape(-1, 3)
 
-    def _pairs(self, displacement):
-        """Per interface: the jump u_b - u_a of each originally coincident node pair, side a's unit
-        normal there (rest state), and the nodal areas of side a (mm^2, a third of the adjacent
-        triangles', rest state) on all mesh points."""
+    def gap_opening(self, displacement: np.ndarray) -> dict[str, np.ndarray]:
+        """Normal opening (mm, > 0 = separated) of each originally coincident node pair per interface."""
+        out = {}
         points = np.asarray(self.field.region.mesh.points, dtype=float)
         for itf in self.surface.interfaces:
             ta = triangles(itf.faces_a)
-            n, area = np.zeros((len(points), 3)), np.zeros(len(points))
+            n = np.zeros((len(points), 3))
             p0, p1, p2 = (points[ta[:, j]] for j in range(3))
             fn = np.cross(p1 - p0, p2 - p0)
             for j in range(3):
                 np.add.at(n, ta[:, j], fn)
-                np.add.at(area, ta[:, j], np.linalg.norm(fn, axis=1) / 6)
-            na = n[itf.nodes_a] / np.linalg.norm(n[itf.nodes_a], axis=1, keepdims=True)
-            yield itf, displacement[itf.nodes_b] - displacement[itf.nodes_a], na, area
-
-    def gap_opening(self, displacement: np.ndarray) -> dict[str, np.ndarray]:
-        """Normal opening (mm, > 0 = separated) of each originally coincident node pair per interface."""
-        return {itf.name: np.einsum("ij,ij->i", jump, na) for itf, jump, na, _ in self._pairs(displacement)}
+            na = n[itf.nodes_a]
+            na /= np.linalg.norm(na, axis=1, keepdims=True)
+            jump = displacement[itf.nodes_b] - displacement[itf.nodes_a]
+            out[itf.name] = np.einsum("ij,ij->i", jump, na)
+        return out
