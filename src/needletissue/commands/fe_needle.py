@@ -100,15 +100,12 @@ def register(app: typer.Typer, groups) -> None:
         contact_eps_v = contact_eps_v if contact_eps_v is not None else contact.get("eps_v_mm")
         hooks = {}
         if interfaces != "bonded" or pairs:
-            from needletissue.fem.contact import ContactSettings
-            from needletissue.models.contact import NEEDLE_EPS_V, NEEDLE_GAP_FRACTION, NeedleContact
-
             from needletissue.errors import check_number
+            from needletissue.models.contact import NeedleContact, needle_settings
 
             given_settings = {k: check_number(f"--contact-{k.replace('_', '-')}", v, gt=0)
                               for k, v in (("dhat", contact_dhat), ("eps_v", contact_eps_v)) if v is not None}
-            settings = ContactSettings(**{"eps_v": NEEDLE_EPS_V, "gap_fraction": NEEDLE_GAP_FRACTION, **given_settings})
-            hooks = NeedleContact(interfaces, pairs, settings).hooks()
+            hooks = NeedleContact(interfaces, pairs, needle_settings(**given_settings)).hooks()
         if out is not None:  # a file or an unwritable place: one error line now, not after meshing
             from needletissue.runinfo import check_output_dir
 

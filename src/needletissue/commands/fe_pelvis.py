@@ -90,8 +90,6 @@ def register(app, groups) -> None:
                "contact_dhat": ("contact_dhat", contact_dhat), "contact_eps_v": ("contact_eps_v", contact_eps_v),
                "sliding_radius": ("sliding_radius", sliding_radius)}
         kw.update(v for k, v in cli.items() if k in given)
-        if kw.get("sliding_radius", 0) is None:  # not given: the model's default
-            del kw["sliding_radius"]
         if ssm or ct is not None:  # a source given on the command line replaces the file's
             kw["source"] = "ssm" if ssm else "ct"
             if ssm:

@@ -30,6 +30,11 @@ bone with ~30 MPa at 300 N (beam on an elastic foundation, 30 mm deep), and with
 rim squeezed the barrier to 1e-5 mm of dhat 0.1, where Newton stagnated (docs/contact.md)."""
 
 
+def needle_settings(**given) -> ContactSettings:
+    """The needle model's contact settings: NEEDLE_EPS_V and NEEDLE_GAP_FRACTION unless `given`."""
+    return ContactSettings(**{"eps_v": NEEDLE_EPS_V, "gap_fraction": NEEDLE_GAP_FRACTION, **given})
+
+
 @dataclass
 class NeedleContact:
     """Interfaces of the needle model as contact pairs.
@@ -122,7 +127,7 @@ class NeedleContact:
         for itf in self._split:
             modulus = min(3.0 * materials.get(names.get(r, r)).initial_shear_modulus
                           for r in itf.regions_a + itf.regions_b)
-            settings = self.settings or ContactSettings(eps_v=NEEDLE_EPS_V, gap_fraction=NEEDLE_GAP_FRACTION)
+            settings = self.settings or needle_settings()
             if settings.stiffness is None:  # PRESSURE_FRACTION: the needle model's pin (materials None)
                 fraction = PRESSURE_FRACTION.get(itf.name) if self.materials is None else None
                 settings = replace(settings, youngs_modulus=modulus,
@@ -153,7 +158,7 @@ def interface_state(item, displacement) -> dict[str, dict]:
     area_mm2, pairs: side a's interface area and the number of split node pairs.
     Assumes an interface per item or items whose interfaces share no vertex (NeedleContact's)."""
     from needletissue.fem.contact.item import _collisions
-    from needletissue.fem.contact.mesh import triangles
+    from needletissue.fem.contact.mesh import triangles, vertex_normals
 
     s = item.surface
     points = np.asarray(item.field.region.mesh.points, dtype=float)
@@ -165,12 +170,7 @@ def interface_state(item, displacement) -> dict[str, dict]:
     out = {}
     for itf in s.interfaces:
         ta = triangles(itf.faces_a)
-        fn = np.cross(points[ta[:, 1]] - points[ta[:, 0]], points[ta[:, 2]] - points[ta[:, 0]])  # 2 area n
-        normal, area = np.zeros((len(points), 3)), np.zeros(len(points))
-        for j in range(3):
-            np.add.at(normal, ta[:, j], fn)
-            np.add.at(area, ta[:, j], np.linalg.norm(fn, axis=1) / 6)
-        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        normal, area = vertex_normals(points, itf.faces_a)
         nodes = np.unique(ta)
         # side b lies along side a's outward normal: the barrier pushes side a against it
         pressing = np.maximum(-np.einsum("ij,ij->i", force[np.searchsorted(s.vertices, nodes)], normal[nodes]), 0)

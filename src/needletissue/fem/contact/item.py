@@ -39,7 +39,7 @@ from felupe.mechanics import Assemble, Results
 from scipy.sparse import coo_matrix, csr_matrix
 
 from needletissue.errors import InputError, check_number
-from needletissue.fem.contact.mesh import SplitInterface, triangles
+from needletissue.fem.contact.mesh import SplitInterface, triangles, vertex_normals
 
 PAPER_INTERFACES = {"needle-muscle": 0.3, "muscle-bone": 0.3, "bone-needle": 0.9}
 """Friction coefficients of the paper (section 2.3): every other interface is bonded."""
@@ -550,17 +550,10 @@ class FrictionalContact:
 
     def gap_opening(self, displacement: np.ndarray) -> dict[str, np.ndarray]:
         """Normal opening (mm, > 0 = separated) of each originally coincident node pair per interface."""
-        out = {}
         points = np.asarray(self.field.region.mesh.points, dtype=float)
+        out = {}
         for itf in self.surface.interfaces:
-            ta = triangles(itf.faces_a)
-            n = np.zeros((len(points), 3))
-            p0, p1, p2 = (points[ta[:, j]] for j in range(3))
-            fn = np.cross(p1 - p0, p2 - p0)
-            for j in range(3):
-                np.add.at(n, ta[:, j], fn)
-            na = n[itf.nodes_a]
-            na /= np.linalg.norm(na, axis=1, keepdims=True)
+            normal = vertex_normals(points, itf.faces_a)[0][itf.nodes_a]
             jump = displacement[itf.nodes_b] - displacement[itf.nodes_a]
-            out[itf.name] = np.einsum("ij,ij->i", jump, na)
+            out[itf.name] = np.einsum("ij,ij->i", jump, normal)
         return out

@@ -225,3 +225,16 @@ def triangles(faces: np.ndarray) -> np.ndarray:
     return np.vstack(
         [np.c_[a, ab, ca], np.c_[ab, b, bc], np.c_[ca, bc, c], np.c_[ab, bc, ca]]
     )
+
+
+def vertex_normals(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit area-weighted vertex normals (n, 3) and tributary areas (n,) of a face set, per mesh point
+    (zero where a point is not on the faces)."""
+    t = triangles(faces)
+    fn = np.cross(points[t[:, 1]] - points[t[:, 0]], points[t[:, 2]] - points[t[:, 0]])  # 2 area n
+    normal, area = np.zeros((len(points), 3)), np.zeros(len(points))
+    for j in range(3):
+        np.add.at(normal, t[:, j], fn)
+        np.add.at(area, t[:, j], np.linalg.norm(fn, axis=1) / 6)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    return normal, area

@@ -39,6 +39,8 @@ PAPER = {
     "elements": 1329469,
 }
 
+SLIDING_RADIUS = 35.0
+"""Default muscle-bone sliding radius, mm: beyond it the muscles stay bonded (origins and insertions)."""
 FRAME = "patient RAS, mm (x right, y anterior, z superior), the CT's scanner coordinates"
 
 MATERIALS = {
@@ -92,7 +94,7 @@ class PelvisConfig:
                     elements stay bonded (standing in for the muscles' origins and insertions: gluteals on the
                     outer ilium and the trochanters, iliacus in the iliac fossa; docs/contact.md). A radius
                     larger than the model (e.g. 1000) lets every muscle-bone face slide: friction alone then
-                    holds the soft tissue on the skeleton
+                    holds the soft tissue on the skeleton (None: SLIDING_RADIUS, 35 mm)
     contact_dhat    contact barrier distance = largest interpenetration, mm
     contact_eps_v   friction smoothing: slip per load increment below which an interface sticks, mm
     """
@@ -124,7 +126,7 @@ class PelvisConfig:
     si_joint: str = "fixed"
     interfaces: str = "bonded"
     friction: dict = field(default_factory=dict)
-    sliding_radius: float = 35.0
+    sliding_radius: float | None = None  # None: SLIDING_RADIUS
     contact_dhat: float | None = None  # None: ContactSettings' default
     contact_eps_v: float | None = None
     solver: str = "auto"
@@ -149,6 +151,8 @@ class PelvisConfig:
         for name, mu in self.friction.items():
             check_number(f"friction {name}", mu, ge=0)
             check_interface_name(name)
+        if self.sliding_radius is None:
+            self.sliding_radius = SLIDING_RADIUS
         check_number("sliding_radius", self.sliding_radius, gt=0)
         for name in ("contact_dhat", "contact_eps_v"):
             if getattr(self, name) is not None:
