@@ -270,3 +270,32 @@ def test_sigterm_to_a_caller_without_a_handler_stops_the_mesher_and_removes_its_
     assert p.returncode == 143
     time.sleep(0.5)
     assert not [k for k in kids if os.path.exists(f"/proc/{k}")] and list(tmp.iterdir()) == []
+
+
+def test_mesh_cache_returns_the_same_mesh_without_gmsh_and_keys_every_input(tmp_path, monkeypatch):
+    """A cached mesh is the stored file byte for byte with the same facts, gmsh not started; another
+    geometry or order is a miss; NEEDLETISSUE_MESH_CACHE=0 turns the cache off."""
+    import needletissue.geometry.needle as nd
+
+    monkeypatch.setenv(nd.MESH_CACHE_ENV, str(tmp_path / "cache"))
+    g = NeedleGeometry(**COARSE)
+    a = mesh_needle_model(g, tmp_path / "a.msh", cache=True)
+    assert not a.cached and len(list((tmp_path / "cache").glob("*.msh"))) == 1
+
+    def no_gmsh(*args, **kwargs):
+        raise RuntimeError("gmsh ran")
+
+    real = nd._mesh
+    monkeypatch.setattr(nd, "_mesh", no_gmsh)
+    b = mesh_needle_model(g, tmp_path / "sub" / "b.msh", cache=True)
+    assert b.cached and (tmp_path / "sub" / "b.msh").read_bytes() == (tmp_path / "a.msh").read_bytes()
+    assert (b.nodes, b.tetrahedra, b.region_tetrahedra, b.min_quality) == \
+        (a.nodes, a.tetrahedra, a.region_tetrahedra, a.min_quality)
+    assert nd._cache_key(g, 1) != nd._cache_key(g, 2)
+    assert nd._cache_key(g, 1) != nd._cache_key(NeedleGeometry(**{**COARSE, "mesh_size": 5.0}), 1)
+    with pytest.raises(RuntimeError, match="gmsh ran"):
+        mesh_needle_model(NeedleGeometry(**{**COARSE, "mesh_size": 5.0}), tmp_path / "c.msh", cache=True)
+    monkeypatch.setattr(nd, "_mesh", real)
+    monkeypatch.setenv(nd.MESH_CACHE_ENV, "0")
+    assert nd.mesh_cache_dir() is None
+    assert not mesh_needle_model(g, tmp_path / "d.msh", cache=True).cached

@@ -259,3 +259,20 @@ def test_rerun_with_fewer_forces_and_a_moved_folder(one_needle, tmp_path, monkey
     assert series.n_blocks == 1 and series[0].n_blocks == n == blocks.n_blocks  # the load's .vtm, by region
     assert list(blocks.keys()) == list(r10.fe.region_tags)
     assert sum(b.n_cells for b in blocks) == len(r10.fe.cells)
+
+
+def test_a_cached_mesh_gives_the_same_model(one_needle, tmp_path, monkeypatch):
+    """run_needle_model takes its mesh from the mesh cache when it holds one for the geometry (gmsh not
+    run, results' mesh.cached) and the answer is the uncached run's."""
+    import needletissue.geometry.needle as nd
+
+    monkeypatch.setenv(nd.MESH_CACHE_ENV, str(tmp_path / "cache"))
+    cfg = one_needle.config
+    nd.mesh_needle_model(cfg.geometry, tmp_path / "fill.msh", order=cfg.order, cache=True)
+    monkeypatch.setattr(nd, "_mesh", lambda *a, **k: pytest.fail("gmsh ran for a cached mesh"))
+    res = run_needle_model(cfg)
+    assert res.mesh["cached"] and not one_needle.mesh["cached"]
+    assert res.mesh["dofs"] == one_needle.mesh["dofs"]
+    a, b = one_needle.results[0], res.results[0]
+    assert b.max_needle_deformation_mm == pytest.approx(a.max_needle_deformation_mm, rel=1e-9)
+    assert np.abs(b.fe.displacement - a.fe.displacement).max() <= 1e-9 * np.abs(a.fe.displacement).max()

@@ -222,16 +222,103 @@ class NeedleMeshInfo:
     region_tetrahedra: dict[str, int] = field(default_factory=dict)
     min_quality: float = float("nan")   # gmsh minSICN (> 0: no inverted element)
     mesh_time_s: float = 0.0
+    cached: bool = False                 # read from the mesh cache (mesh_cache_dir), gmsh not run
+
+
+MESH_CACHE_ENV = "NEEDLETISSUE_MESH_CACHE"   # "0" / "off": no mesh cache; a folder: the cache there
+
+
+def mesh_cache_dir() -> Path | None:
+    """Where `mesh_needle_model(cache=True)` keeps meshes: $NEEDLETISSUE_MESH_CACHE, else
+    $XDG_CACHE_HOME/needletissue/meshes (~/.cache/...); None when that variable is 0/off/no/false."""
+    import os
+
+    env = os.environ.get(MESH_CACHE_ENV, "").strip()
+    if env.lower() in ("0", "off", "no", "false"):
+        return None
+    if env:
+        return Path(env).expanduser()
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "needletissue" / "meshes"
+
+
+def _cache_key(geometry: NeedleGeometry, order: int) -> str:
+    """Every input of the mesh: the geometry, the order, gmsh's version and the meshing code itself
+    (this module and the gmsh set-up: a change to either makes new meshes)."""
+    import hashlib
+    import json
+    from importlib.metadata import version
+
+    h = hashlib.sha256(json.dumps({"geometry": geometry.to_dict(), "order": order, "gmsh": version("gmsh")},
+                                  sort_keys=True).encode())
+    for f in ("needle.py", "gmsh_init.py"):
+        h.update((Path(__file__).parent / f).read_bytes())
+    return h.hexdigest()[:32]
 
 
 def mesh_needle_model(geometry: NeedleGeometry, path: str | Path, *, order: int = 1,
-                      verbose: bool = False, isolate: bool = True) -> NeedleMeshInfo:
+                      verbose: bool = False, isolate: bool = True, cache: bool = False) -> NeedleMeshInfo:
     """Build the OCC geometry, mesh it conformingly, check it, write `path` (.msh, named groups).
 
     order=1: linear tets (the FE core converts to quadratic with the VTK node order it expects).
     Raises MeshError when gmsh fails, crashes or produces inverted/degenerate elements. With isolate
     (the default) gmsh runs in a child process (~1 s more), so a native crash is a MeshError too.
+    With cache, a mesh made before from the same inputs (_cache_key) is copied from mesh_cache_dir()
+    instead (the default `fe needle` mesh: ~5 s of gmsh saved); a new one is stored there.
     """
+    folder = mesh_cache_dir() if cache else None
+    if folder is not None:
+        key = _cache_key(geometry, order)
+        info = _from_cache(folder, key, geometry, path)
+        if info is not None:
+            return info
+    info = _mesh(geometry, path, order=order, verbose=verbose, isolate=isolate)
+    if folder is not None:
+        _to_cache(folder, key, info)
+    return info
+
+
+def _from_cache(folder: Path, key: str, geometry: NeedleGeometry, path: str | Path) -> NeedleMeshInfo | None:
+    import json
+    import shutil
+
+    try:  # the .json is written after the .msh: its presence means a complete entry
+        facts = json.loads((folder / f"{key}.json").read_text())
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(folder / f"{key}.msh", path)
+    except (OSError, ValueError):
+        return None
+    return NeedleMeshInfo(path=path, geometry=geometry, nodes=facts["nodes"], tetrahedra=facts["tetrahedra"],
+                          region_tetrahedra=facts["region_tetrahedra"], min_quality=facts["min_quality"],
+                          mesh_time_s=0.0, cached=True)
+
+
+def _to_cache(folder: Path, key: str, info: NeedleMeshInfo) -> None:
+    """Best effort (a read-only home must not fail the run): each file written beside and renamed."""
+    import json
+    import os
+    import shutil
+    import tempfile
+
+    facts = {"nodes": info.nodes, "tetrahedra": info.tetrahedra, "region_tetrahedra": info.region_tetrahedra,
+             "min_quality": info.min_quality, "geometry": info.geometry.to_dict()}
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, write in ((f"{key}.msh", lambda f: shutil.copyfile(info.path, f)),
+                            (f"{key}.json", lambda f: Path(f).write_text(json.dumps(facts)))):
+            fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-")
+            os.close(fd)
+            try:
+                write(tmp)
+                os.replace(tmp, folder / name)
+            finally:
+                if os.path.exists(tmp):
+                    os.unlink(tmp)
+    except OSError:
+        pass
+
+
+def _mesh(geometry: NeedleGeometry, path: str | Path, *, order: int, verbose: bool, isolate: bool) -> NeedleMeshInfo:
     if isolate:
         from needletissue.geometry.child import ChildCrash, call_in_child
 

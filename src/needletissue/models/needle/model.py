@@ -192,7 +192,8 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     with tempfile.TemporaryDirectory() as tmp:
         # not into out_dir: an interrupted or failed run leaves no mesh there (write_outputs adds it)
         msh = Path(mesh_path) if mesh_path else Path(tmp) / "needle_model.msh"
-        info = mesh_needle_model(g, msh, order=cfg.order)  # order 2: midside nodes on the true cylinder
+        # order 2: midside nodes on the true cylinder; cached per geometry ($NEEDLETISSUE_MESH_CACHE=0: off)
+        info = mesh_needle_model(g, msh, order=cfg.order, cache=True)
         mesh = TaggedMesh.read(msh)
         mesh_file = msh.read_bytes() if out_dir is not None else None
     t_mesh = time.perf_counter() - t0
@@ -260,7 +261,8 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     mesh_summary = {"nodes": int(info.nodes), "tetrahedra": int(info.tetrahedra),
                     "quadratic_nodes": int(len(used.points)), "order": cfg.order, "dofs": int(model.ndof),
                     "tetrahedra_by_region": info.region_tetrahedra,
-                    "min_quality_sicn": info.min_quality, "min_quality_mean_ratio": stats.get("min_quality")}
+                    "min_quality_sicn": info.min_quality, "min_quality_mean_ratio": stats.get("min_quality"),
+                    "cached": info.cached}
     out = NeedleModelResult(cfg, mesh_summary, time.perf_counter() - t0, results,
                             timing_s={"mesh": t_mesh, "solve": t_solve})
     if report is not None:
