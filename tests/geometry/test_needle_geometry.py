@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 from collections import Counter
 
 import meshio
@@ -279,8 +280,14 @@ def test_mesh_cache_returns_the_same_mesh_without_gmsh_and_keys_every_input(tmp_
 
     monkeypatch.setenv(nd.MESH_CACHE_ENV, str(tmp_path / "cache"))
     g = NeedleGeometry(**COARSE)
-    a = mesh_needle_model(g, tmp_path / "a.msh", cache=True)
+    old = os.umask(0o027)
+    try:
+        a = mesh_needle_model(g, tmp_path / "a.msh", cache=True)
+    finally:
+        os.umask(old)
     assert not a.cached and len(list((tmp_path / "cache").glob("*.msh"))) == 1
+    assert {f.stat().st_mode & 0o777 for f in (tmp_path / "cache").iterdir()} == {0o640}  # the umask's
+    assert not list((tmp_path / "cache").glob(".tmp-*"))
 
     def no_gmsh(*args, **kwargs):
         raise RuntimeError("gmsh ran")

@@ -294,11 +294,11 @@ def _from_cache(folder: Path, key: str, geometry: NeedleGeometry, path: str | Pa
 
 
 def _to_cache(folder: Path, key: str, info: NeedleMeshInfo) -> None:
-    """Best effort (a read-only home must not fail the run): each file written beside and renamed."""
+    """Best effort (a read-only home must not fail the run): each file written beside and renamed,
+    opened normally so it follows the umask (mkstemp would make it 0600)."""
     import json
     import os
     import shutil
-    import tempfile
 
     facts = {"nodes": info.nodes, "tetrahedra": info.tetrahedra, "region_tetrahedra": info.region_tetrahedra,
              "min_quality": info.min_quality, "geometry": info.geometry.to_dict()}
@@ -306,14 +306,12 @@ def _to_cache(folder: Path, key: str, info: NeedleMeshInfo) -> None:
         folder.mkdir(parents=True, exist_ok=True)
         for name, write in ((f"{key}.msh", lambda f: shutil.copyfile(info.path, f)),
                             (f"{key}.json", lambda f: Path(f).write_text(json.dumps(facts)))):
-            fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-")
-            os.close(fd)
+            tmp = folder / f".tmp-{os.getpid()}-{name}"
             try:
                 write(tmp)
                 os.replace(tmp, folder / name)
             finally:
-                if os.path.exists(tmp):
-                    os.unlink(tmp)
+                tmp.unlink(missing_ok=True)
     except OSError:
         pass
 
