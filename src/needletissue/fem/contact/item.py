@@ -10,9 +10,9 @@ Modelling choices (details and the reasons in docs/contact.md):
 
 * Interfaces come from a conforming mesh split by ``needletissue.fem.contact.mesh.split_interfaces``; the two sides
   start coincident. The barrier needs a positive distance, so side b's collision vertices are shifted
-  by ``gap = 0.9 dhat`` along side a's outward normal: zero physical gap is (almost) the barrier's
-  activation distance, and the physical interpenetration is bounded by ``gap < dhat`` (the barrier
-  diverges before it).
+  by ``gap = 0.9 dhat`` outward of side a, from every side-a face at their node
+  (``virtual_gap_offsets``): zero physical gap is (almost) the barrier's activation distance, and the
+  physical interpenetration is bounded by ``gap < dhat`` (the barrier diverges before it).
 * Area-weighted ("convergent") barrier: ``stiffness`` is a contact stiffness per area (MPa/mm), so the
   contact pressure does not depend on the mesh size.
 * Friction (Li et al. 2020, IPC): slip is the displacement since the last converged step; the normal
