@@ -87,3 +87,15 @@ def test_paper_interfaces_converge_in_equilibrium_and_report_each_interface(tmp_
         assert s["max_pair_interpenetration_mm"] < dhat and 0 <= s["max_interpenetration_mm"] < dhat, name
         assert 0 < s["mean_pressure_MPa"] <= s["max_pressure_MPa"], name
         assert s["max_slip_mm"] < res.results[0].max_needle_deformation_mm, name
+    # the progress log in --out: the increments reach 20 N, with each interface's barrier distance in (0, dhat)
+    from needletissue.fem.solvelog import read_log
+    from needletissue.models.pelvis.model import SOLVE_LOG
+
+    ev = read_log(tmp_path / SOLVE_LOG)
+    inc = [e for e in ev if e["event"] == "increment"]
+    assert ev[0]["event"] == "start" and ev[-1]["event"] == "done"
+    assert inc[-1]["force_N"] == pytest.approx(20.0) and inc[-1]["cpu_s"] > 0
+    assert sum(e["iterations"] for e in inc) == x["newton_iterations"]
+    for e in inc:
+        assert set(e["min_distance_mm"]) == set(contact["interfaces"])
+        assert all(0 < d < contact["settings"][n]["dhat_mm"] for n, d in e["min_distance_mm"].items())

@@ -350,7 +350,7 @@ class _Progress:
 def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=(), progress: bool = True,
           initial_step: float | None = None, min_step: float = 1e-3, max_step: float | None = None,
           tol: float = 1e-8, maxiter: int | None = None, results: bool = True, predictor: bool = True,
-          linesearch: bool | None = None, substeps: int | None = None) -> list[FEResult]:
+          linesearch: bool | None = None, substeps: int | None = None, log=None) -> list[FEResult]:
     """Solve the model quasi-statically, one FEResult per requested load factor.
 
     bcs          : Fixed / PrescribedDisplacement / SurfaceForce; values and forces scale with the
@@ -386,6 +386,12 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                    test is unchanged, so the answer is the same to the tolerance (docs/bench.md, "Newton").
                    An increment that fails after substeps is tried once more without them before
                    it is halved.
+
+    log          : a callable taking one dict per event as it happens (`SolveLog` writes them to a JSON-lines
+                   file, so a long run says which load it reached while it runs and where it stopped):
+                   "increment" (converged: load_factor, increment, iterations, cpu_s and wall_s since the
+                   start, min_distance_mm per contact item), "cutback" (the failed increment and why),
+                   "failed" (ConvergenceError: the load factor reached).
 
     Reactions: a dof fixed by several conditions (e.g. on two fixed surfaces that share an edge)
     counts once, for the first condition in `bcs` that constrains it, so the reactions of all
@@ -462,6 +468,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     newton_s = 0.0
     norms: list[list[float]] = []
     out = []
+    emit = _emitter(log, items, t0)
     with bar if progress else nullcontext(), linsolve.thread_limits(name, len(loads.dof1)), closing(linear):
         for target in lams:
             while lam < target * (1 - 1e-12):
@@ -520,6 +527,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                     else:
                         step = dl
                     bar.update(lam=lam)
+                    emit("increment", load_factor=lam, increment=dl, iterations=int(res.iterations))
                     continue
                 # failed: restore the last converged state and halve the increment
                 retry = sub is not None and sub.enabled and sub.taken > taken0
@@ -538,8 +546,10 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 last_du = None  # the path turned: no extrapolation from a failed direction
                 step = dl / 2
                 bar.update(text=f"cut-back to dλ={step:.3g} at λ={lam:.4g} ({why or 'no convergence in %d iterations' % maxiter})")
+                emit("cutback", load_factor=lam, increment=dl, reason=why or f"no convergence in {maxiter} iterations")
                 if step < min_step:
                     loads.apply(model, lam)
+                    emit("failed", load_factor=lam, steps=nsteps, iterations=nit, cutbacks=ncut)
                     raise ConvergenceError(
                         f"no convergence beyond load factor {lam:.6g} (target {target:.6g}): increment "
                         f"{dl:.3g} failed and halving it would go below min_step={min_step:g} "
@@ -555,6 +565,24 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                                      "assembly_and_update": newton_s - linear.seconds}, norms,
                                     newton_substeps=nsub))
     return out
+
+
+def _emitter(log, items, t0):
+    """log(event, **fields) -> log({event, fields, cpu_s, wall_s, min_distance_mm}); a no-op without log."""
+    if log is None:
+        return lambda event, **kw: None
+    c0 = time.process_time()
+    contact = [i for i in items if hasattr(i, "contact_state")]
+
+    def emit(event, **kw):
+        rec = {"event": event, **kw, "cpu_s": round(time.process_time() - c0, 2),
+               "wall_s": round(time.perf_counter() - t0, 2)}
+        if contact:  # each item's last evaluation (for "increment": the converged state)
+            rec["min_distance_mm"] = {"+".join(x.name for x in i.surface.interfaces): i.results.info.get("min_distance_mm")
+                                      for i in contact}
+        log(rec)
+
+    return emit
 
 
 def _min_det_f(body) -> float:

@@ -10,9 +10,9 @@ Modelling choices (details and the reasons in docs/contact.md):
 
 * Interfaces come from a conforming mesh split by ``needletissue.fem.contact.mesh.split_interfaces``; the two sides
   start coincident. The barrier needs a positive distance, so side b's collision vertices are shifted
-  by ``gap = 0.9 dhat`` along side a's outward normal: zero physical gap is (almost) the barrier's
-  activation distance, and the physical interpenetration is bounded by ``gap < dhat`` (the barrier
-  diverges before it).
+  by ``gap = 0.9 dhat`` outward of side a, from every side-a face at their node
+  (``virtual_gap_offsets``): zero physical gap is (almost) the barrier's activation distance, and the
+  physical interpenetration is bounded by ``gap < dhat`` (the barrier diverges before it).
 * Area-weighted ("convergent") barrier: ``stiffness`` is a contact stiffness per area (MPa/mm), so the
   contact pressure does not depend on the mesh size.
 * Friction (Li et al. 2020, IPC): slip is the displacement since the last converged step; the normal
@@ -39,7 +39,7 @@ from felupe.mechanics import Assemble, Results
 from scipy.sparse import coo_matrix, csr_matrix
 
 from needletissue.errors import InputError, check_number
-from needletissue.fem.contact.mesh import SplitInterface, triangles, vertex_normals
+from needletissue.fem.contact.mesh import SplitInterface, triangles, vertex_normals, virtual_gap_offsets
 
 PAPER_INTERFACES = {"needle-muscle": 0.3, "muscle-bone": 0.3, "bone-needle": 0.9}
 """Friction coefficients of the paper (section 2.3): every other interface is bonded."""
@@ -212,7 +212,6 @@ class ContactSurface:
         # two bodies into one collision component; their other vertices stay in the neighbours
         tri_b = [triangles(i.faces_b) for i in interfaces]
         keep = [~np.isin(tb, ta).any(axis=1) for ta, tb in zip(tri_a, tri_b)]
-        pair_a = [ta[k] for ta, k in zip(tri_a, keep)]  # side a's face of each kept side-b face
         tri_b = [tb[k] for tb, k in zip(tri_b, keep)]
         vertices = np.unique(np.concatenate([t.ravel() for t in tri_a + tri_b]))
         local = np.full(len(points), -1)
@@ -221,8 +220,8 @@ class ContactSurface:
         side_b = np.zeros(len(vertices), dtype=np.int64)
         mu = np.zeros(len(vertices))
         count = np.zeros(len(vertices))
-        normal_b = np.zeros((len(vertices), 3))
-        for k, (itf, ta, tb, pa) in enumerate(zip(interfaces, tri_a, tri_b, pair_a)):
+        offset = np.zeros((len(vertices), 3))
+        for k, (itf, ta, tb) in enumerate(zip(interfaces, tri_a, tri_b)):
             side_a[local[ta.ravel()]] |= 1 << k
             side_b[local[tb.ravel()]] |= 1 << k
             m = check_number(f"interfaces.{itf.name}", friction[itf.name], ge=0)
@@ -230,13 +229,11 @@ class ContactSurface:
                 ids = np.unique(local[t.ravel()])
                 mu[ids] += m
                 count[ids] += 1
-            # area-weighted normal of side a, accumulated on the side-b vertices
-            p0, p1, p2 = (points[pa[:, j]] for j in range(3))
-            n = np.cross(p1 - p0, p2 - p0)
-            for j in range(3):
-                np.add.at(normal_b, local[tb[:, j]], n)
-        length = np.linalg.norm(normal_b, axis=1, keepdims=True)
-        offset = np.divide(normal_b, length, out=np.zeros_like(normal_b), where=length > 0) * gap
+            # side b's copies go gap from every side-a face at their partner node (virtual_gap_offsets)
+            vb = np.unique(tb)
+            partner = np.arange(len(points))
+            partner[itf.nodes_b] = itf.nodes_a
+            offset[local[vb]] += virtual_gap_offsets(points, ta, partner[vb], gap)[0]
         faces = local[np.vstack(tri_a + tri_b)]
         return cls(vertices, faces, offset, side_a, side_b, mu / np.maximum(count, 1), list(interfaces))
 

@@ -198,6 +198,7 @@ def check_interface_name(name: str) -> None:
 # floors at 4e-8..1e-7 near the solution (the full step repeats; docs/contact.md), so 1e-8 cut back at the same
 # state until it failed; 1e-6 of the reactions is < 3e-4 N at 300 N (coarse mesh: 300 N, no cut-back)
 CONTACT_TOL = 1e-6
+SOLVE_LOG = "solve_log.jsonl"  # in --out: one JSON line per converged increment, cut-back and the end
 ATTACHED = "@attached"  # suffix of the muscle cells kept bonded to bone while the interfaces are split
 
 
@@ -440,7 +441,10 @@ def run_pelvis_model(config: PelvisConfig | dict | None = None) -> PelvisResult:
 
 
 def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResult:
+    from contextlib import nullcontext
+
     from needletissue.fem import FEModel, Fixed, PrescribedDisplacement, SurfaceForce, TaggedMesh, solve
+    from needletissue.fem.solvelog import SolveLog
 
     t0 = time.perf_counter()
     c0 = time.process_time()
@@ -481,9 +485,16 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
         bcs.append(Fixed("sacroiliac_joint"))
     bcs.append(SurfaceForce("gripper", total=tuple(fmax * fdir)))
     factors = [f / fmax for f in config.forces]
-    fe = solve(model, bcs, load_factors=factors, solver=config.solver, progress=config.progress, items=items,
-               predictor=config.formulation == "mixed" and not items,  # as the needle model (bench.md)
-               **({"tol": CONTACT_TOL} if items else {}))
+    # the solve's progress, line by line as it happens, in --out itself (not the staged folder: it stays
+    # when the run fails or is stopped, and says the load reached)
+    log = None if config.out is None else SolveLog(
+        Path(config.out) / SOLVE_LOG, scale=fmax, load_key="force_N", forces_N=config.forces,
+        tetrahedra=len(model.mesh.cells), dofs=int(model.ndof),
+        interfaces=dict(contact.friction) if contact is not None else "bonded")
+    with log or nullcontext():
+        fe = solve(model, bcs, load_factors=factors, solver=config.solver, progress=config.progress, items=items,
+                   predictor=config.formulation == "mixed" and not items,  # as the needle model (bench.md)
+                   log=log, **({"tol": CONTACT_TOL} if items else {}))
     t_solve = time.perf_counter() - t0 - t_mesh - t_model
 
     qm = model.mesh
