@@ -242,6 +242,39 @@ def test_split_keeps_the_ring_bonded_to_a_third_region_tied():
     assert not np.isin(surface.vertices[b], ring).any()
 
 
+@pytest.mark.parametrize("quadratic", [False, True])
+def test_split_where_three_contact_interfaces_meet_keeps_every_face_in_contact(quadratic):
+    """A pin (needle) through muscle into bone: needle-muscle, muscle-bone and bone-needle meet on a
+    line. Split in that order, every face of each interface of the conforming mesh is a contact face
+    (none left neither bonded nor in contact along the line), the three bodies share no node, and each
+    pair is two nodes at one place."""
+    from needletissue.fem.contact.mesh import interface_faces
+
+    boxes = {"needle": ((5, 0, -2.5), (10, 10, 10)), "muscle": ((0, 0, 0), (5, 10, 10)),
+             "cortical_bone": ((0, 0, -5), (5, 10, 0)), "cancellous_bone": ((5, 0, -5), (10, 10, -2.5))}
+    mesh = stacked_boxes(boxes, 2.5)
+    if quadratic:
+        mesh = mesh.to_quadratic()
+    names = ["needle-muscle", "muscle-bone", "bone-needle"]
+    split, itfs = split_interfaces(mesh, names)
+    bone = ("cortical_bone", "cancellous_bone")
+    sides = {"needle-muscle": (("needle",), ("muscle",)), "muscle-bone": (("muscle",), bone),
+             "bone-needle": (bone, ("needle",))}
+    for itf in itfs:
+        conforming, _ = interface_faces(mesh, *sides[itf.name])
+        assert len(itf.faces_a) == len(itf.faces_b) == len(conforming), itf.name
+        assert np.allclose(split.points[itf.nodes_a], split.points[itf.nodes_b])
+        assert not np.isin(itf.nodes_a, itf.nodes_b).any()
+    nodes = {k: set(np.unique(split.cells[np.concatenate([split.regions[r] for r in v])].ravel()))
+             for k, v in {"needle": ("needle",), "muscle": ("muscle",), "bone": bone}.items()}
+    assert not nodes["needle"] & nodes["muscle"] and not nodes["muscle"] & nodes["bone"]
+    assert not nodes["bone"] & nodes["needle"]
+    # the line x = 5, z = 0 (5 corner nodes) has one node per body: two copies added
+    line = np.isclose(mesh.points[:, 0], 5) & np.isclose(mesh.points[:, 2], 0)
+    at_line = np.isclose(split.points[:, 0], 5) & np.isclose(split.points[:, 2], 0)
+    assert at_line.sum() == 3 * line.sum()
+
+
 def test_implicit_friction_tangent_matches_finite_differences():
     """lag="iteration": the Jacobian includes the derivatives of the normal forces and tangent bases
     (ipctk force_jacobian by the lagged displacements), so it is the derivative of the residual:

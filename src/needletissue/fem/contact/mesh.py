@@ -112,14 +112,17 @@ def _as_void(a: np.ndarray) -> np.ndarray:
     return a.view(np.dtype((np.void, a.dtype.itemsize * a.shape[1]))).ravel()
 
 
-def interface_faces(mesh, regions_a, regions_b):
+def interface_faces(mesh, regions_a, regions_b, origin=None):
     """Faces shared by a cell of regions_a and a cell of regions_b: (faces_a, faces_b) oriented
-    outward of each side."""
+    outward of each side. ``origin`` (node id -> id of the node it was copied from): match faces by
+    their original corners, so faces already detached along a line by an earlier split still match."""
     cells = np.asarray(mesh.cells)
     ca = np.unique(np.concatenate([np.asarray(mesh.regions[r]) for r in regions_a]))
     cb = np.unique(np.concatenate([np.asarray(mesh.regions[r]) for r in regions_b]))
     ka, fa, _ = _cell_faces(cells[ca], mesh.points)
     kb, fb, _ = _cell_faces(cells[cb], mesh.points)
+    if origin is not None:
+        ka, kb = np.sort(origin[fa[:, :3]], axis=1), np.sort(origin[fb[:, :3]], axis=1)
     _, ia, ib = np.intersect1d(_as_void(ka), _as_void(kb), assume_unique=False, return_indices=True)
     return fa[ia], fb[ib]
 
@@ -148,6 +151,7 @@ def split_interfaces(mesh, names, groups: dict[str, tuple[str, ...]] | None = No
     points = np.asarray(mesh.points, dtype=float).copy()
     cells = np.asarray(mesh.cells).copy()
     surfaces = {k: np.asarray(v).copy() for k, v in mesh.surfaces.items()}
+    origin = np.arange(len(points))  # node id -> the conforming mesh's node it was copied from
     out: list[SplitInterface] = []
     seen = set()
     pairs = [tuple(set(group_regions(mesh, g, groups)) for g in parse_interface_name(n)) for n in names]
@@ -166,20 +170,35 @@ def split_interfaces(mesh, names, groups: dict[str, tuple[str, ...]] | None = No
         if set(ra) & set(rb):
             raise InputError("interfaces", f"interface {name!r}: both sides contain {sorted(set(ra) & set(rb))}")
         current = dataclasses.replace(mesh, points=points, cells=cells)
-        faces_a, faces_b = interface_faces(current, ra, rb)
+        # matched by original node ids: where an earlier split already gave side b its own copy (the
+        # ring where needle, muscle and bone meet) the faces touching it are still this interface's
+        # (by current ids, 19 of 190 muscle-bone faces of the default needle mesh were neither
+        # bonded nor in contact there, docs/contact.md)
+        faces_a, faces_b = interface_faces(current, ra, rb, origin)
         if len(faces_a) == 0:
             raise InputError(
                 "interfaces",
                 f"interface {name!r} does not exist in the mesh: regions {ra} and {rb} share no face",
             )
+        # coincident node pairs (side a, side b) of the matched faces, aligned by original id
+        oa, ob = origin[faces_a], origin[faces_b]
+        ia, ib = np.argsort(oa, axis=1), np.argsort(ob, axis=1)
+        pa = np.take_along_axis(faces_a, ia, axis=1).ravel()
+        pb = np.take_along_axis(faces_b, ib, axis=1).ravel()
+        pair = np.unique(np.c_[pa, pb], axis=0)
+        shared = pair[pair[:, 0] == pair[:, 1], 0]
         # nodes where side a also touches a region it stays bonded to (the ring where needle, muscle
         # and adipose meet) are not split: a point of that line belongs to the bond, so side b stays
         # tied to side a there (split, the muscle rim tore off the adipose and Newton failed, docs/contact.md)
-        nodes = np.setdiff1d(np.unique(faces_a), _bonded_nodes(current, ra, rb, pairs))
+        nodes = np.setdiff1d(shared, _bonded_nodes(current, ra, rb, pairs))
         new = np.arange(len(points), len(points) + len(nodes))
         remap = np.arange(len(points))
         remap[nodes] = new
         points = np.vstack([points, points[nodes]])
+        origin = np.concatenate([origin, origin[nodes]])
+        # pairs split before (side b already has its own copy) + the new copies
+        apart = pair[pair[:, 0] != pair[:, 1]]
+        nodes_a, nodes_b = np.r_[apart[:, 0], nodes], np.r_[remap[apart[:, 1]], new]
         cb = np.unique(np.concatenate([np.asarray(mesh.regions[r]) for r in rb]))
         # named surfaces: faces that lie on a side-b cell (and not on side a) follow side b
         if surfaces:
@@ -208,8 +227,8 @@ def split_interfaces(mesh, names, groups: dict[str, tuple[str, ...]] | None = No
                 regions_b=rb,
                 faces_a=faces_a,
                 faces_b=remap[faces_b],
-                nodes_a=nodes,
-                nodes_b=new,
+                nodes_a=nodes_a,
+                nodes_b=nodes_b,
             )
         )
     new_mesh = dataclasses.replace(mesh, points=points, cells=cells, surfaces=surfaces)
