@@ -214,7 +214,8 @@ class ContactSurface:
         keep = [~np.isin(tb, ta).any(axis=1) for ta, tb in zip(tri_a, tri_b)]
         pair_a = [ta[k] for ta, k in zip(tri_a, keep)]  # side a's face of each kept side-b face
         tri_b = [tb[k] for tb, k in zip(tri_b, keep)]
-        vertices = np.unique(np.concatenate([t.ravel() for t in tri_a + tri_b]))
+        skirt = [triangles(i.skirt_a) for i in interfaces]  # collision only: no pairs, no offset
+        vertices = np.unique(np.concatenate([t.ravel() for t in tri_a + tri_b + skirt]))
         local = np.full(len(points), -1)
         local[vertices] = np.arange(len(vertices))
         side_a = np.zeros(len(vertices), dtype=np.int64)
@@ -222,11 +223,11 @@ class ContactSurface:
         mu = np.zeros(len(vertices))
         count = np.zeros(len(vertices))
         normal_b = np.zeros((len(vertices), 3))
-        for k, (itf, ta, tb, pa) in enumerate(zip(interfaces, tri_a, tri_b, pair_a)):
+        for k, (itf, ta, tb, pa, sk) in enumerate(zip(interfaces, tri_a, tri_b, pair_a, skirt)):
             side_a[local[ta.ravel()]] |= 1 << k
             side_b[local[tb.ravel()]] |= 1 << k
             m = check_number(f"interfaces.{itf.name}", friction[itf.name], ge=0)
-            for t in (ta, tb):
+            for t in (np.vstack([ta, sk]), tb):
                 ids = np.unique(local[t.ravel()])
                 mu[ids] += m
                 count[ids] += 1
@@ -237,7 +238,7 @@ class ContactSurface:
                 np.add.at(normal_b, local[tb[:, j]], n)
         length = np.linalg.norm(normal_b, axis=1, keepdims=True)
         offset = np.divide(normal_b, length, out=np.zeros_like(normal_b), where=length > 0) * gap
-        faces = local[np.vstack(tri_a + tri_b)]
+        faces = local[np.vstack(tri_a + tri_b + skirt)]
         return cls(vertices, faces, offset, side_a, side_b, mu / np.maximum(count, 1), list(interfaces))
 
 

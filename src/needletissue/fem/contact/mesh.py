@@ -43,6 +43,9 @@ class SplitInterface:
     faces_b: np.ndarray
     nodes_a: np.ndarray
     nodes_b: np.ndarray
+    # side a's faces bonded to a rim region next to the split line (split_interfaces' rim): collision
+    # faces only, so side b's rim meets side a's surface, not its boundary edge, when it slides past
+    skirt_a: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3), dtype=int))
 
 
 def group_regions(mesh, group: str, groups: dict[str, tuple[str, ...]] | None = None) -> tuple[str, ...]:
@@ -127,11 +130,11 @@ def interface_faces(mesh, regions_a, regions_b, origin=None):
     return fa[ia], fb[ib]
 
 
-def _bonded_nodes(mesh, ra, rb, pairs) -> np.ndarray:
-    """Nodes of faces between side a (regions ra) and regions other than rb that are not in contact
-    with side a (no pair of `pairs`, a list of (regions, regions), joins them)."""
+def _bonded_nodes(mesh, ra, rb, pairs, skip=()) -> np.ndarray:
+    """Nodes of faces between side a (regions ra) and regions other than rb (and `skip`) that are not
+    in contact with side a (no pair of `pairs`, a list of (regions, regions), joins them)."""
     sa = set(ra)
-    contact = set(rb)
+    contact = set(rb) | set(skip)
     for p, q in pairs:
         contact |= q if p == sa else p if q == sa else set()
     others = [r for r in mesh.regions if r not in sa and r not in contact]
@@ -141,8 +144,14 @@ def _bonded_nodes(mesh, ra, rb, pairs) -> np.ndarray:
     return np.unique(faces_a)
 
 
-def split_interfaces(mesh, names, groups: dict[str, tuple[str, ...]] | None = None) -> tuple[object, list[SplitInterface]]:
+def split_interfaces(mesh, names, groups: dict[str, tuple[str, ...]] | None = None,
+                     rim: tuple[str, ...] = ()) -> tuple[object, list[SplitInterface]]:
     """Duplicate the nodes of each named interface on its side b (the second group).
+
+    Where side a also touches a region it stays bonded to, the nodes of that line stay tied (not
+    split), unless the region is in the groups ``rim``: then the line is split too and its copies
+    belong to side b and to that region (the tissue rim stays in one piece and slides; the rim
+    region's bond to side a loses only that line).
 
     Returns a new mesh of the same dataclass type (points appended, side-b cells and side-b faces of
     the named surfaces renumbered) and one SplitInterface per name. Raises InputError for a name that
@@ -190,7 +199,8 @@ def split_interfaces(mesh, names, groups: dict[str, tuple[str, ...]] | None = No
         # nodes where side a also touches a region it stays bonded to (the ring where needle, muscle
         # and adipose meet) are not split: a point of that line belongs to the bond, so side b stays
         # tied to side a there (split, the muscle rim tore off the adipose and Newton failed, docs/contact.md)
-        nodes = np.setdiff1d(shared, _bonded_nodes(current, ra, rb, pairs))
+        rr = tuple(r for g in rim for r in group_regions(mesh, g, groups) if r not in ra + rb)
+        nodes = np.setdiff1d(shared, _bonded_nodes(current, ra, rb, pairs, skip=rr))
         new = np.arange(len(points), len(points) + len(nodes))
         remap = np.arange(len(points))
         remap[nodes] = new
@@ -213,13 +223,21 @@ def split_interfaces(mesh, names, groups: dict[str, tuple[str, ...]] | None = No
                 move = np.isin(fk, vb) & ~np.isin(fk, va)
                 f[move] = remap[f[move]]
         cells[cb] = remap[cells[cb]]
+        if rr:  # the rim region's cells at the split line follow side b (its other nodes are not in `nodes`)
+            cr = np.unique(np.concatenate([np.asarray(mesh.regions[r]) for r in rr]))
+            cells[cr] = remap[cells[cr]]
         # earlier interfaces whose side lies in these regions follow the new node ids
         for k, prev in enumerate(out):
             if set(prev.regions_a) <= set(rb):
-                prev = dataclasses.replace(prev, faces_a=remap[prev.faces_a], nodes_a=remap[prev.nodes_a])
+                prev = dataclasses.replace(prev, faces_a=remap[prev.faces_a], nodes_a=remap[prev.nodes_a],
+                                           skirt_a=remap[prev.skirt_a])
             if set(prev.regions_b) <= set(rb):
                 prev = dataclasses.replace(prev, faces_b=remap[prev.faces_b], nodes_b=remap[prev.nodes_b])
             out[k] = prev
+        skirt = np.zeros((0, faces_a.shape[1]), dtype=int)
+        if rr:
+            fr, _ = interface_faces(dataclasses.replace(mesh, points=points, cells=cells), ra, rr, origin)
+            skirt = fr[np.isin(fr, nodes[np.isin(new, cells[cr])]).any(axis=1)]
         out.append(
             SplitInterface(
                 name=name,
@@ -229,6 +247,7 @@ def split_interfaces(mesh, names, groups: dict[str, tuple[str, ...]] | None = No
                 faces_b=remap[faces_b],
                 nodes_a=nodes_a,
                 nodes_b=nodes_b,
+                skirt_a=skirt,
             )
         )
     new_mesh = dataclasses.replace(mesh, points=points, cells=cells, surfaces=surfaces)
