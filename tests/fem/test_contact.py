@@ -242,6 +242,65 @@ def test_split_keeps_the_ring_bonded_to_a_third_region_tied():
     assert not np.isin(surface.vertices[b], ring).any()
 
 
+def test_split_rim_region_keeps_the_tissue_rim_in_one_piece():
+    """rim=("side",): the line where lower (side a), upper (side b) and side (bonded to both) meet is
+    split too; its copies belong to upper and side, so upper slides on lower right up to the line
+    while staying bonded to side, and side stays bonded to lower everywhere else."""
+    from needletissue.fem.contact import ContactSurface
+
+    boxes = {"lower": ((0, 0, -5), (10, 10, 0)), "upper": ((0, 0, 0), (5, 10, 10)), "side": ((5, 0, 0), (10, 10, 10))}
+    mesh = stacked_boxes(boxes, 2.5)
+    split, (itf,) = split_interfaces(mesh, ["lower-upper"], rim=("side",))
+    ring = np.flatnonzero(np.isclose(mesh.points[:, 0], 5) & np.isclose(mesh.points[:, 2], 0))
+    assert np.isin(ring, itf.nodes_a).all()
+    assert len(split.points) == len(mesh.points) + 3 * 5  # every interface node has a copy
+    nodes = {r: set(np.unique(split.cells[split.regions[r]])) for r in boxes}
+    assert not nodes["lower"] & nodes["upper"]
+    copies = set(itf.nodes_b[np.isin(itf.nodes_a, ring)])
+    assert copies <= nodes["upper"] & nodes["side"]
+    # side keeps its bond to lower on the plane x > 5 (grid nodes 7.5 and 10 across, 5 along y)
+    assert len(nodes["lower"] & nodes["side"]) == 2 * 5
+    # lower's faces bonded to side along the line (one row, x 5..7.5) are collision faces of side a:
+    # upper's rim slides onto lower's surface, not off its boundary edge
+    assert len(itf.skirt_a) == 2 * 4 and np.isin(itf.skirt_a, ring).any(axis=1).all()
+    assert np.all(split.points[itf.skirt_a][..., 0] >= 5) and np.allclose(split.points[itf.skirt_a][..., 2], 0)
+    surface = ContactSurface.build(split.points, [itf], {"lower-upper": 0.3}, gap=0.09)
+    assert len(surface.faces) == 2 * len(itf.faces_a) + len(itf.skirt_a)  # no side-b triangle dropped
+
+
+@pytest.mark.parametrize("quadratic", [False, True])
+def test_split_where_three_contact_interfaces_meet_keeps_every_face_in_contact(quadratic):
+    """A pin (needle) through muscle into bone: needle-muscle, muscle-bone and bone-needle meet on a
+    line. Split in that order, every face of each interface of the conforming mesh is a contact face
+    (none left neither bonded nor in contact along the line), the three bodies share no node, and each
+    pair is two nodes at one place."""
+    from needletissue.fem.contact.mesh import interface_faces
+
+    boxes = {"needle": ((5, 0, -2.5), (10, 10, 10)), "muscle": ((0, 0, 0), (5, 10, 10)),
+             "cortical_bone": ((0, 0, -5), (5, 10, 0)), "cancellous_bone": ((5, 0, -5), (10, 10, -2.5))}
+    mesh = stacked_boxes(boxes, 2.5)
+    if quadratic:
+        mesh = mesh.to_quadratic()
+    names = ["needle-muscle", "muscle-bone", "bone-needle"]
+    split, itfs = split_interfaces(mesh, names)
+    bone = ("cortical_bone", "cancellous_bone")
+    sides = {"needle-muscle": (("needle",), ("muscle",)), "muscle-bone": (("muscle",), bone),
+             "bone-needle": (bone, ("needle",))}
+    for itf in itfs:
+        conforming, _ = interface_faces(mesh, *sides[itf.name])
+        assert len(itf.faces_a) == len(itf.faces_b) == len(conforming), itf.name
+        assert np.allclose(split.points[itf.nodes_a], split.points[itf.nodes_b])
+        assert not np.isin(itf.nodes_a, itf.nodes_b).any()
+    nodes = {k: set(np.unique(split.cells[np.concatenate([split.regions[r] for r in v])].ravel()))
+             for k, v in {"needle": ("needle",), "muscle": ("muscle",), "bone": bone}.items()}
+    assert not nodes["needle"] & nodes["muscle"] and not nodes["muscle"] & nodes["bone"]
+    assert not nodes["bone"] & nodes["needle"]
+    # the line x = 5, z = 0 (5 corner nodes) has one node per body: two copies added
+    line = np.isclose(mesh.points[:, 0], 5) & np.isclose(mesh.points[:, 2], 0)
+    at_line = np.isclose(split.points[:, 0], 5) & np.isclose(split.points[:, 2], 0)
+    assert at_line.sum() == 3 * line.sum()
+
+
 def test_implicit_friction_tangent_matches_finite_differences():
     """lag="iteration": the Jacobian includes the derivatives of the normal forces and tangent bases
     (ipctk force_jacobian by the lagged displacements), so it is the derivative of the residual:

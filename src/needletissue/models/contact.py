@@ -24,10 +24,16 @@ Newton chattered between stick and slip from the second increment on (docs/conta
 NEEDLE_GAP_FRACTION = 0.95
 """The split sides' virtual gap (x dhat): the rest prestress of the stiffer bone-needle barrier stays
 near 1 % of the bone's E (0.9: 5 %)."""
-PRESSURE_FRACTION = {"bone-needle": 1.0}
+NEEDLE_RIM = ("adipose",)
+"""Where the needle leaves the muscle into the adipose, the muscle rim's nodes are split from the needle
+and shared with the adipose (split_interfaces' rim): tied to the needle there, the needle's rotation
+pressed the muscle under the ring into the barrier (distances 2e-4..5e-4 mm, Newton stalled at 206 N on
+the default mesh, docs/contact.md)."""
+PRESSURE_FRACTION = {"bone-needle": 1.0, "needle-muscle": 1.0}
 """Barrier pressure at dhat/2 per interface (x E of the softer side; others 0.1): the pin presses the
 bone with ~30 MPa at 300 N (beam on an elastic foundation, 30 mm deep), and with 0.1 E the cortical
-rim squeezed the barrier to 1e-5 mm of dhat 0.1, where Newton stagnated (docs/contact.md)."""
+rim squeezed the barrier to 1e-5 mm of dhat 0.1, where Newton stagnated; the muscle under the adipose
+squeezed the needle-muscle barrier to 2e-4 mm by 160 N the same way (docs/contact.md)."""
 
 
 def needle_settings(**given) -> ContactSettings:
@@ -114,7 +120,8 @@ class NeedleContact:
         self.friction = resolve_interfaces(mesh, self.interfaces, self.overrides, groups)
         if not self.friction:
             return mesh
-        mesh, self._split = split_interfaces(mesh, list(self.friction), groups)
+        mesh, self._split = split_interfaces(mesh, list(self.friction), groups,
+                                             rim=NEEDLE_RIM if self.materials is None else ())
         return mesh
 
     def items(self, model) -> list:

@@ -213,7 +213,8 @@ class ContactSurface:
         tri_b = [triangles(i.faces_b) for i in interfaces]
         keep = [~np.isin(tb, ta).any(axis=1) for ta, tb in zip(tri_a, tri_b)]
         tri_b = [tb[k] for tb, k in zip(tri_b, keep)]
-        vertices = np.unique(np.concatenate([t.ravel() for t in tri_a + tri_b]))
+        skirt = [triangles(i.skirt_a) for i in interfaces]  # collision only: no pairs, no offset
+        vertices = np.unique(np.concatenate([t.ravel() for t in tri_a + tri_b + skirt]))
         local = np.full(len(points), -1)
         local[vertices] = np.arange(len(vertices))
         side_a = np.zeros(len(vertices), dtype=np.int64)
@@ -221,11 +222,11 @@ class ContactSurface:
         mu = np.zeros(len(vertices))
         count = np.zeros(len(vertices))
         offset = np.zeros((len(vertices), 3))
-        for k, (itf, ta, tb) in enumerate(zip(interfaces, tri_a, tri_b)):
+        for k, (itf, ta, tb, sk) in enumerate(zip(interfaces, tri_a, tri_b, skirt)):
             side_a[local[ta.ravel()]] |= 1 << k
             side_b[local[tb.ravel()]] |= 1 << k
             m = check_number(f"interfaces.{itf.name}", friction[itf.name], ge=0)
-            for t in (ta, tb):
+            for t in (np.vstack([ta, sk]), tb):
                 ids = np.unique(local[t.ravel()])
                 mu[ids] += m
                 count[ids] += 1
@@ -234,7 +235,7 @@ class ContactSurface:
             partner = np.arange(len(points))
             partner[itf.nodes_b] = itf.nodes_a
             offset[local[vb]] += virtual_gap_offsets(points, ta, partner[vb], gap)[0]
-        faces = local[np.vstack(tri_a + tri_b)]
+        faces = local[np.vstack(tri_a + tri_b + skirt)]
         return cls(vertices, faces, offset, side_a, side_b, mu / np.maximum(count, 1), list(interfaces))
 
 
