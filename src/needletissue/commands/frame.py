@@ -212,7 +212,7 @@ def _table(model, results):
     for r in results:
         import math
 
-        t.add_row(",".join(f"{x:g}" for x in r.force_N), ",".join(f"{x:.3f}" for x in r.clamp_displacement_mm),
+        t.add_row(",".join(f"{x:g}" for x in r.force_N), ",".join(f"{round(x, 3) + 0.0:.3f}" for x in r.clamp_displacement_mm),
                   f"{math.hypot(*r.clamp_rotation_rad):.4f}", f"{r.max_needle_deflection_mm:.3f}",
                   f"{max(n.root_slope_rad for n in r.needles):.4f}", f"{r.needle_yield_utilisation:.2f}",
                   f"{r.error_estimate_mm:.0e}")
