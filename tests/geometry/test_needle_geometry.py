@@ -275,7 +275,7 @@ def test_sigterm_to_a_caller_without_a_handler_stops_the_mesher_and_removes_its_
 
 def test_mesh_cache_returns_the_same_mesh_without_gmsh_and_keys_every_input(tmp_path, monkeypatch):
     """A cached mesh is the stored file byte for byte with the same facts, gmsh not started; another
-    geometry or order is a miss; NEEDLETISSUE_MESH_CACHE=0 turns the cache off."""
+    geometry or order is a miss, so is a damaged entry (rewritten); NEEDLETISSUE_MESH_CACHE=0 turns the cache off."""
     import needletissue.geometry.needle as nd
 
     monkeypatch.setenv(nd.MESH_CACHE_ENV, str(tmp_path / "cache"))
@@ -303,6 +303,12 @@ def test_mesh_cache_returns_the_same_mesh_without_gmsh_and_keys_every_input(tmp_
     with pytest.raises(RuntimeError, match="gmsh ran"):
         mesh_needle_model(NeedleGeometry(**{**COARSE, "mesh_size": 5.0}), tmp_path / "c.msh", cache=True)
     monkeypatch.setattr(nd, "_mesh", real)
+    # a damaged entry (a truncated .msh) is a miss: gmsh runs again and the entry is rewritten whole
+    (entry,) = (tmp_path / "cache").glob("*.msh")
+    entry.write_bytes(entry.read_bytes()[:3000])
+    e = mesh_needle_model(g, tmp_path / "e.msh", cache=True)
+    assert not e.cached and entry.read_bytes() == (tmp_path / "e.msh").read_bytes()
+    assert mesh_needle_model(g, tmp_path / "f.msh", cache=True).cached
     monkeypatch.setenv(nd.MESH_CACHE_ENV, "0")
     assert nd.mesh_cache_dir() is None
     assert not mesh_needle_model(g, tmp_path / "d.msh", cache=True).cached

@@ -279,18 +279,20 @@ def mesh_needle_model(geometry: NeedleGeometry, path: str | Path, *, order: int 
 
 def _from_cache(folder: Path, key: str, geometry: NeedleGeometry, path: str | Path) -> NeedleMeshInfo | None:
     import json
-    import shutil
 
-    try:  # the .json is written after the .msh: its presence means a complete entry
+    try:  # the .json is written after the .msh; a .msh that does not match its checksum is a miss
         facts = json.loads((folder / f"{key}.json").read_text())
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(folder / f"{key}.msh", path)
-    except (OSError, ValueError):
+        data = (folder / f"{key}.msh").read_bytes()
+        if _sha256(data) != facts["msh_sha256"]:
+            return None
+        info = NeedleMeshInfo(path=Path(path), geometry=geometry, nodes=facts["nodes"], tetrahedra=facts["tetrahedra"],
+                              region_tetrahedra=facts["region_tetrahedra"], min_quality=facts["min_quality"],
+                              mesh_time_s=0.0, cached=True)
+        info.path.parent.mkdir(parents=True, exist_ok=True)
+        info.path.write_bytes(data)
+    except (OSError, ValueError, KeyError, TypeError):
         return None
-    return NeedleMeshInfo(path=path, geometry=geometry, nodes=facts["nodes"], tetrahedra=facts["tetrahedra"],
-                          region_tetrahedra=facts["region_tetrahedra"], min_quality=facts["min_quality"],
-                          mesh_time_s=0.0, cached=True)
+    return info
 
 
 def _to_cache(folder: Path, key: str, info: NeedleMeshInfo) -> None:
@@ -298,13 +300,13 @@ def _to_cache(folder: Path, key: str, info: NeedleMeshInfo) -> None:
     opened normally so it follows the umask (mkstemp would make it 0600)."""
     import json
     import os
-    import shutil
 
-    facts = {"nodes": info.nodes, "tetrahedra": info.tetrahedra, "region_tetrahedra": info.region_tetrahedra,
-             "min_quality": info.min_quality, "geometry": info.geometry.to_dict()}
     try:
+        data = Path(info.path).read_bytes()
+        facts = {"nodes": info.nodes, "tetrahedra": info.tetrahedra, "region_tetrahedra": info.region_tetrahedra,
+                 "min_quality": info.min_quality, "geometry": info.geometry.to_dict(), "msh_sha256": _sha256(data)}
         folder.mkdir(parents=True, exist_ok=True)
-        for name, write in ((f"{key}.msh", lambda f: shutil.copyfile(info.path, f)),
+        for name, write in ((f"{key}.msh", lambda f: Path(f).write_bytes(data)),
                             (f"{key}.json", lambda f: Path(f).write_text(json.dumps(facts)))):
             tmp = folder / f".tmp-{os.getpid()}-{name}"
             try:
@@ -314,6 +316,12 @@ def _to_cache(folder: Path, key: str, info: NeedleMeshInfo) -> None:
                 tmp.unlink(missing_ok=True)
     except OSError:
         pass
+
+
+def _sha256(data: bytes) -> str:
+    import hashlib
+
+    return hashlib.sha256(data).hexdigest()
 
 
 def _mesh(geometry: NeedleGeometry, path: str | Path, *, order: int, verbose: bool, isolate: bool) -> NeedleMeshInfo:
