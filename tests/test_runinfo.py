@@ -1,11 +1,13 @@
 """Run records: files a colleague can read (umask), relocatable, with the versions that shaped them."""
 
+import json
 import os
 import stat
 
+import numpy as np
 import pytest
 
-from needletissue.runinfo import current_umask, make_dir, write_atomic, write_json
+from needletissue.runinfo import current_umask, make_dir, to_jsonable, write_atomic, write_json
 
 
 @pytest.fixture
@@ -136,3 +138,14 @@ def test_staged_output_replaces_a_file_by_a_folder_and_back(tmp_path):
         (stage / "run_10N" / "a.vtu").write_text("piece")
         (stage / "run_10N.vtu").write_text("whole")
     assert (out / "run_10N" / "a.vtu").read_text() == "piece" and (out / "run_10N.vtu").read_text() == "whole"
+
+
+def test_non_finite_numbers_are_null_so_strict_parsers_read_the_file(tmp_path):
+    """NaN and +-inf (Python's json writes them as NaN / Infinity, which JSON.parse rejects) become null,
+    NumPy scalars included; finite numbers pass unchanged."""
+    obj = {"a": float("inf"), "b": np.float64(-np.inf), "c": [np.nan, 1.5, np.float32(2.0)], "d": np.array([np.inf, 3])}
+    out = to_jsonable(obj)
+    assert out == {"a": None, "b": None, "c": [None, 1.5, 2.0], "d": [None, 3.0]}
+    text = json.dumps(out, allow_nan=False)  # raises on any non-finite number left
+    write_json(tmp_path / "r.json", obj)
+    assert json.loads((tmp_path / "r.json").read_text()) == json.loads(text)

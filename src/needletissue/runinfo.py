@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import os
 import platform
 import sys
@@ -99,7 +100,7 @@ def version_record() -> dict:
 
 
 def to_jsonable(obj):
-    """Dataclasses, NumPy arrays and scalars, Paths -> plain JSON types."""
+    """Dataclasses, NumPy arrays and scalars, Paths -> plain JSON types (NaN and +-inf -> null)."""
     if is_dataclass(obj) and not isinstance(obj, type):
         return to_jsonable(asdict(obj))
     if isinstance(obj, dict):
@@ -109,10 +110,10 @@ def to_jsonable(obj):
     if isinstance(obj, np.ndarray):
         return to_jsonable(obj.tolist())
     if isinstance(obj, np.generic):
-        return obj.item()
+        return to_jsonable(obj.item())
     if isinstance(obj, Path):
         return str(obj)
-    if isinstance(obj, float) and (obj != obj):
+    if isinstance(obj, float) and not math.isfinite(obj):  # JSON has no NaN or Infinity
         return None
     return obj
 

@@ -12,8 +12,9 @@ manager).
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
+
+from needletissue.runinfo import to_jsonable
 
 
 class SolveLog:
@@ -31,7 +32,7 @@ class SolveLog:
         self._write({"event": "start", **start})
 
     def _write(self, rec: dict) -> None:
-        self._file.write(json.dumps(rec, default=_plain) + "\n")
+        self._file.write(json.dumps(to_jsonable(rec), default=str) + "\n")
         self._file.flush()
 
     def __call__(self, rec: dict) -> None:
@@ -60,13 +61,6 @@ class SolveLog:
         self.close()
         return False
 
-
-def _plain(x):
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        return str(x)
-    return v if math.isfinite(v) else None
 
 
 def read_log(path: str | Path) -> list[dict]:
