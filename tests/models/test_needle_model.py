@@ -12,6 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from needletissue.cli import app
+from needletissue.fem.solvelog import SOLVE_LOG, read_log
 from needletissue.models.needle import NeedleModelConfig, run_needle_model
 from needletissue.geometry.needle import NeedleGeometry
 from needletissue.materials import get
@@ -80,6 +81,12 @@ def test_json_contract_and_files(cli_run):
     vtu = meshio.read(out / "needle_20N.vtu")
     assert "region" in vtu.cell_data and "displacement" in vtu.point_data
     assert json.loads((out / "results.json").read_text(encoding="utf-8"))["results"][0]["force_N"] == F_SMALL
+    # the progress log: its increments reach the last force, their Newton iterations are the results'
+    log = read_log(out / SOLVE_LOG)
+    assert log[0]["event"] == "start" and log[0]["interfaces"] == "bonded" and log[0]["dofs"] > 0
+    assert log[-1]["event"] == "done" and log[-1]["force_N"] == pytest.approx(2 * F_SMALL)
+    inc = [e for e in log if e["event"] == "increment"]
+    assert sum(e["iterations"] for e in inc) == data["results"][-1]["newton_iterations"]
 
 
 def test_two_needles_mirror_symmetric_and_share_the_force(cli_run):

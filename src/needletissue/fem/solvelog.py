@@ -16,6 +16,8 @@ from pathlib import Path
 
 from needletissue.runinfo import to_jsonable
 
+SOLVE_LOG = "solve_log.jsonl"  # its name in a run's --out folder (fe needle, fe pelvis)
+
 
 class SolveLog:
     """Callable log for fem.solve; `scale` turns a load factor into the caller's load (e.g. N) under the

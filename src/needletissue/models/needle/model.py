@@ -183,7 +183,10 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     """
     import tempfile
 
+    from contextlib import nullcontext
+
     from needletissue.fem import Fixed, FEModel, SurfaceForce, TaggedMesh, solve
+    from needletissue.fem.solvelog import SOLVE_LOG, SolveLog
 
     cfg = config or NeedleModelConfig()
     g = cfg.geometry
@@ -210,12 +213,19 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     bcs.append(SurfaceForce("gripper", total=tuple(fmax * np.asarray(cfg.direction)),
                             moment=tuple(cfg.moment(fmax))))
     extra = tuple(items(model) if callable(items) else items)
-    # the linear predictor with mixed tissue (at K = 10 MPa the displacement formulation's extrapolated
-    # start diverges, docs/bench.md) and in contact runs (small increments that extrapolate well and
-    # start with the contact loaded, docs/contact.md)
-    fe_results = solve(model, bcs, load_factors=[f / fmax for f in cfg.forces], solver=cfg.solver,
-                       items=extra, progress=cfg.progress,
-                       predictor=cfg.formulation == "mixed" or bool(extra))
+    # the solve's progress as it happens, in out_dir itself (not the staged folder): it stays when the run
+    # fails or is stopped, and says the load reached
+    log = None if out_dir is None else SolveLog(
+        Path(out_dir) / SOLVE_LOG, scale=fmax, load_key="force_N", forces_N=list(cfg.forces),
+        tetrahedra=len(model.mesh.cells), dofs=int(model.ndof), needles=g.needles,
+        interfaces=[x.name for i in extra if hasattr(i, "surface") for x in i.surface.interfaces] or "bonded")
+    with log or nullcontext():
+        # the linear predictor with mixed tissue (at K = 10 MPa the displacement formulation's extrapolated
+        # start diverges, docs/bench.md) and in contact runs (small increments that extrapolate well and
+        # start with the contact loaded, docs/contact.md)
+        fe_results = solve(model, bcs, load_factors=[f / fmax for f in cfg.forces], solver=cfg.solver,
+                           items=extra, progress=cfg.progress,
+                           predictor=cfg.formulation == "mixed" or bool(extra), log=log)
     t_solve = time.perf_counter() - t0 - t_mesh
 
     used = model.mesh                         # tetra10 when order=2

@@ -198,7 +198,7 @@ def check_interface_name(name: str) -> None:
 # floors at 4e-8..1e-7 near the solution (the full step repeats; docs/contact.md), so 1e-8 cut back at the same
 # state until it failed; 1e-6 of the reactions is < 3e-4 N at 300 N (coarse mesh: 300 N, no cut-back)
 CONTACT_TOL = 1e-6
-SOLVE_LOG = "solve_log.jsonl"  # in --out: one JSON line per converged increment, cut-back and the end
+from needletissue.fem.solvelog import SOLVE_LOG  # noqa: E402  in --out: one JSON line per event
 ATTACHED = "@attached"  # suffix of the muscle cells kept bonded to bone while the interfaces are split
 
 
