@@ -26,6 +26,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from needletissue.errors import InputError, check_force, check_number
+from needletissue.fem.solvelog import SOLVE_LOG  # noqa: F401  (in --out; tests import it from here)
 from needletissue.materials import tissue_bulk
 
 PAPER = {
@@ -198,7 +199,6 @@ def check_interface_name(name: str) -> None:
 # floors at 4e-8..1e-7 near the solution (the full step repeats; docs/contact.md), so 1e-8 cut back at the same
 # state until it failed; 1e-6 of the reactions is < 3e-4 N at 300 N (coarse mesh: 300 N, no cut-back)
 CONTACT_TOL = 1e-6
-from needletissue.fem.solvelog import SOLVE_LOG  # noqa: E402  in --out: one JSON line per event
 ATTACHED = "@attached"  # suffix of the muscle cells kept bonded to bone while the interfaces are split
 
 
