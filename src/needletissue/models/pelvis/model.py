@@ -26,7 +26,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from needletissue.errors import InputError, check_force, check_number
-from needletissue.fem.solvelog import SOLVE_LOG  # noqa: F401  (in --out; tests import it from here)
+from needletissue.fem.solvelog import SOLVE_LOG
 from needletissue.materials import tissue_bulk
 
 PAPER = {
