@@ -111,7 +111,7 @@ class InvariantPolynomial(ConstitutiveMaterial):
         C, J, G, Ci = _kinematics(F)
         I1 = np.einsum("nii->n", C)
         I2 = (I1**2 - np.einsum("nij,nij->n", C, C)) / 2
-        j = J ** (-2 / 3)
+        j = np.abs(J) ** (-2 / 3)  # det(C)^(-1/3) as in the AD laws: defined for det F < 0 too (docs/fem.md)
         d = self._derivatives(j * I1 - 3, j**2 * I2 - 3, order)
         T = np.stack([F, np.matmul(F, C), G], axis=1)  # two-point basis: F U1 = F - I1/3 G,
         z, one = np.zeros_like(I1), np.ones_like(I1)  # F U2 = I1 F - F C - 2/3 I2 G
@@ -178,7 +178,7 @@ class Ogden(ConstitutiveMaterial):
         C, J, G, Ci = _kinematics(F)
         lam, N = np.linalg.eigh(C)  # (n, 3), N[:, I, a]
         f = np.matmul(F, N)  # f[:, :, a] = F N_a
-        j = J ** (-2 / 3)
+        j = np.abs(J) ** (-2 / 3)  # det(C)^(-1/3) as in the AD laws: defined for det F < 0 too (docs/fem.md)
         w, g, Y, gg, ci, gamma = 0, 0, 0, 0, 0, 0
         for mu, alpha in zip(self.mu, self.alpha):
             p = alpha / 2
