@@ -5,9 +5,9 @@ differentiation: the reference, and the fallback for laws without a hand-coded c
 
 `InvariantPolynomial` and `Ogden` are the same isochoric laws with closed-form stress and elasticity,
 FElupe materials (`gradient` -> [P, statevars], `hessian` -> [A], A_iJkL = d2W/dF_iJ dF_kL, trailing axes
-(q, c), evaluated in FElupe's chunks of cells). tensortrax costs 7-66 ms a call on the needle model's
-tissue bodies (docs/bench.md, "Tissue laws"). Derivation: S = 2 dW/dC and C4 = 4 d2W/dCdC of
-W(J^-2/3 C), pushed forward, A_iJkL = F_iI F_kK C4_IJKL + delta_ik S_JL, with
+(q, c), evaluated in FElupe's chunks of cells). tensortrax costs 5-50 ms a call on the needle model's
+tissue bodies, these 3-16 ms (docs/bench.md, "Tissue laws without tensortrax"). Derivation: S = 2 dW/dC
+and C4 = 4 d2W/dCdC of W(det(C)^(-1/3) C), pushed forward, A_iJkL = F_iI F_kK C4_IJKL + delta_ik S_JL, with
 F (X (x) Y) F -> (F X) (x) (F Y), F (Ci (.) Ci) F -> (delta_ik Ci_JL + G_iL G_kJ) / 2 and
 F I4s F -> (B_ik delta_JL + F_iL F_kJ) / 2 (G = F^-T, B = F F^T, (.) the symmetrised product).
 """
@@ -18,6 +18,8 @@ import numpy as np
 from felupe import ConstitutiveMaterial
 from tensortrax.math import trace
 from tensortrax.math.linalg import det
+
+from needletissue.errors import InputError
 
 
 def mooney_rivlin_5(C, C10, C01, C20, C11, C02):
@@ -85,7 +87,7 @@ class InvariantPolynomial(ConstitutiveMaterial):
     def __init__(self, coefficients: dict, parallel: bool = False):
         self.coefficients = {(int(m), int(n)): float(c) for (m, n), c in coefficients.items() if c != 0}
         if any(m < 0 or n < 0 or m + n > 3 for m, n in self.coefficients):
-            raise ValueError(f"powers (m, n) with m + n <= 3, got {sorted(self.coefficients)}")
+            raise InputError("coefficients", f"powers (m, n) with m + n <= 3, got {sorted(self.coefficients)}")
         self.kwargs = {f"C{m}{n}": c for (m, n), c in self.coefficients.items()}
         self.parallel = parallel
         self.x = [np.eye(3), np.zeros(0)]
@@ -169,7 +171,7 @@ class Ogden(ConstitutiveMaterial):
     def __init__(self, mu, alpha, parallel: bool = False):
         self.mu, self.alpha = np.atleast_1d(mu).astype(float), np.atleast_1d(alpha).astype(float)
         if self.mu.shape != self.alpha.shape or np.any(self.alpha == 0):
-            raise ValueError("mu and alpha: the same number of terms, every alpha non-zero")
+            raise InputError("alpha", "as many terms as mu, every alpha non-zero")
         self.kwargs = {"mu": list(self.mu), "alpha": list(self.alpha)}
         self.parallel = parallel
         self.x = [np.eye(3), np.zeros(0)]
