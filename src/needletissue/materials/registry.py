@@ -11,7 +11,7 @@ from pathlib import Path
 import felupe as fem
 
 from needletissue.errors import InputError, check_number
-from needletissue.materials.laws import mooney_rivlin_5
+from needletissue.materials.laws import InvariantPolynomial, Ogden, mooney_rivlin_5
 from needletissue.runinfo import read_toml
 
 # Isochoric laws: name -> (strain energy, parameter names).
@@ -23,6 +23,16 @@ HYPERELASTIC_MODELS = {
     "ogden": (fem.ogden, ("mu", "alpha")),
 }
 MODELS = (*HYPERELASTIC_MODELS, "elastic")
+# Hand-coded stress and elasticity of the same laws (laws.py; equal to the AD ones to round-off, Ogden's
+# to tensortrax's eigenvalue perturbation): 5-25x faster than tensortrax (docs/bench.md, "Tissue laws").
+CLOSED_FORM = {
+    "neo_hooke": lambda p: InvariantPolynomial({(1, 0): p["mu"] / 2}),
+    "mooney_rivlin": lambda p: InvariantPolynomial({(1, 0): p["C10"], (0, 1): p["C01"]}),
+    "mooney_rivlin_5": lambda p: InvariantPolynomial({(1, 0): p["C10"], (0, 1): p["C01"], (2, 0): p["C20"],
+                                                      (1, 1): p["C11"], (0, 2): p["C02"]}),
+    "yeoh": lambda p: InvariantPolynomial({(1, 0): p["C10"], (2, 0): p["C20"], (3, 0): p["C30"]}),
+    "ogden": lambda p: Ogden(_as_list(p["mu"]), _as_list(p["alpha"])),
+}
 
 # Bulk modulus of nearly incompressible tissue: K = max(TISSUE_BULK_MODULUS, TISSUE_BULK_RATIO * mu0).
 # 10 MPa keeps muscle (MR5) and adipose (Ogden, alpha 16.2) within 2 % of their incompressible laws up
@@ -113,8 +123,11 @@ class Material:
 
         return stability.stable_range(self.model, self.parameters, mode)
 
-    def isochoric(self):
-        """FElupe isochoric hyperelastic material (tissue laws only)."""
+    def isochoric(self, ad: bool = False):
+        """FElupe isochoric hyperelastic material (tissue laws only): the hand-coded one where the law has
+        one, else (or with `ad`) FElupe's Hyperelastic on the strain energy (tensortrax AD)."""
+        if not ad and self.model in CLOSED_FORM:
+            return CLOSED_FORM[self.model]({n: self.parameters[n] for n in HYPERELASTIC_MODELS[self.model][1]})
         fun, names = HYPERELASTIC_MODELS[self.model]
         kwargs = {n: self.parameters[n] for n in names}
         if self.model == "ogden":

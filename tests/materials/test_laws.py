@@ -1,0 +1,119 @@
+"""The hand-coded isochoric laws (materials.laws) against tensortrax's automatic differentiation."""
+
+import felupe as fem
+import numpy as np
+import pytest
+import tensortrax.math as tm
+
+from needletissue import materials
+from needletissue.errors import InputError
+from needletissue.materials.laws import InvariantPolynomial, Ogden
+
+LAWS = {
+    "muscle": ("mooney_rivlin_5", materials.get("muscle").parameters),
+    "mr5_positive": ("mooney_rivlin_5", dict(C10=0.2, C01=0.05, C20=0.01, C11=0.004, C02=0.002)),
+    "mooney_rivlin": ("mooney_rivlin", dict(C10=0.2, C01=0.05)),
+    "neo_hooke": ("neo_hooke", dict(mu=0.3)),
+    "yeoh": ("yeoh", dict(C10=0.1, C20=-0.01, C30=0.002)),
+    "adipose": ("ogden", materials.get("adipose").parameters),
+    "ogden3": ("ogden", dict(mu=[0.2, -0.01, 0.003], alpha=[1.5, -2.0, 9.0])),
+}
+
+
+def _random_F():
+    """(3, 3, 4, 60): moderate random F, large stretches (0.3-3), near-singular-ish (det F ~ 0.003-0.06),
+    large rotations, det F < 0. Eigenvalues of C distinct (AD's eigenvalue derivatives need that)."""
+    rng = np.random.default_rng(18)
+    F = np.eye(3)[:, :, None, None] + 0.3 * rng.standard_normal((3, 3, 4, 60))
+    F[..., :10] = np.einsum("ij...,jk...->ik...", np.linalg.qr(rng.standard_normal((4, 10, 3, 3)))[0].transpose(2, 3, 0, 1),
+                            np.eye(3)[:, :, None, None] * rng.uniform(0.3, 3.0, (3, 1, 4, 10)))
+    F[..., 10:20] = np.eye(3)[:, :, None, None] * rng.uniform(0.15, 0.4, (3, 1, 4, 10))  # det 0.003-0.06
+    F[..., 10:20] += 0.05 * rng.standard_normal((3, 3, 4, 10))
+    F[0, :, :, 20:25] *= -1  # mirrored: det F < 0, where the energies stay defined (docs/fem.md)
+    return F
+
+
+def _exact_ogden(C, mu, alpha):
+    """FElupe's ogden with tensortrax's eigenvalue perturbation off (exact for distinct eigenvalues)."""
+    wC = tm.linalg.det(C) ** (-1 / 3) * tm.linalg.eigvalsh(C, eps=0)
+    return sum(2 * m / a**2 * (tm.sum(wC ** (a / 2)) - 3) for m, a in zip(mu, alpha))
+
+
+def _relative(a, ref):
+    """max |a - ref| over each point's components / max |ref| of that point."""
+    axes = tuple(range(ref.ndim - 2))
+    return float(np.max(np.abs(a - ref).max(axis=axes) / np.abs(ref).max(axis=axes)))
+
+
+@pytest.mark.parametrize("law", list(LAWS))
+def test_closed_form_equals_automatic_differentiation(law):
+    model, p = LAWS[law]
+    mat = materials.Material("t", model, dict(p))
+    fast = mat.isochoric()
+    assert isinstance(fast, Ogden if model == "ogden" else InvariantPolynomial)
+    ref = fem.Hyperelastic(_exact_ogden, **fast.kwargs) if model == "ogden" else mat.isochoric(ad=True)
+    F = _random_F()
+    assert np.sum(np.linalg.det(np.moveaxis(F, (0, 1), (-2, -1))) < 0) >= 20
+    x = [F, np.zeros((0, *F.shape[2:]))]
+    assert _relative(fast.gradient(x)[0], ref.gradient(x)[0]) < 1e-10
+    assert _relative(fast.hessian(x)[0], ref.hessian(x)[0]) < 1e-10
+    if model == "ogden":  # FElupe's own ogden, perturbed by sqrt(eps) |C|: its accuracy, not ours
+        ad = mat.isochoric(ad=True)
+        assert 1e-12 < _relative(fast.gradient(x)[0], ad.gradient(x)[0]) < 1e-5
+
+
+@pytest.mark.parametrize("law", list(LAWS))
+def test_small_strain_tangent_is_isochoric_linear_elasticity(law):
+    """At F = I (all eigenvalues equal: Ogden's divided differences at their limit), A_iJkL =
+    mu0 (d_ik d_JL + d_iL d_kJ - 2/3 d_iJ d_kL), and the stress is zero."""
+    model, p = LAWS[law]
+    mat = materials.Material("t", model, dict(p))
+    F = np.eye(3)[:, :, None, None] * np.ones((1, 1, 2, 3))
+    x = [F, np.zeros((0, 2, 3))]
+    d = np.eye(3)
+    A0 = mat.initial_shear_modulus * (np.einsum("ik,JL->iJkL", d, d) + np.einsum("iL,kJ->iJkL", d, d)
+                                      - 2 / 3 * np.einsum("iJ,kL->iJkL", d, d))
+    umat = mat.isochoric()
+    np.testing.assert_allclose(umat.gradient(x)[0], 0, atol=1e-15 * mat.initial_shear_modulus)
+    np.testing.assert_allclose(umat.hessian(x)[0], A0[..., None, None] * np.ones((2, 3)), rtol=0,
+                               atol=1e-12 * mat.initial_shear_modulus)
+
+
+@pytest.mark.parametrize("law", ["adipose", "ogden3"])
+def test_ogden_tangent_with_repeated_eigenvalues_is_the_stress_derivative(law):
+    """Uniaxial stretch, rotated (two equal eigenvalues), and nearly equal ones (1e-9 apart): the
+    hessian equals central differences of the hand-coded stress (h = 1e-6: error O(h^2))."""
+    model, p = LAWS[law]
+    umat = materials.Material("t", model, dict(p)).isochoric()
+    Q = np.linalg.qr(np.random.default_rng(3).standard_normal((3, 3)))[0]
+    Fs = [Q @ np.diag([1.4, 1.4**-0.5, 1.4**-0.5]) @ Q.T, Q @ np.diag([0.8, 1.1, 1.1 * (1 + 1e-9)]) @ Q.T]
+    for F0 in Fs:
+        F0 = F0[:, :, None, None]
+        A = umat.hessian([F0, None])[0][..., 0, 0]
+        h = 1e-6
+        dP = np.zeros((3, 3, 3, 3))
+        for k in range(3):
+            for L in range(3):
+                E = np.zeros((3, 3, 1, 1))
+                E[k, L] = h
+                dP[:, :, k, L] = (umat.gradient([F0 + E, None])[0] - umat.gradient([F0 - E, None])[0])[..., 0, 0] / (2 * h)
+        np.testing.assert_allclose(A, dP, rtol=0, atol=1e-6 * np.abs(A).max())
+
+
+def test_invariant_polynomial_rejects_higher_powers():
+    with pytest.raises(InputError, match="coefficients: powers"):
+        InvariantPolynomial({(2, 2): 1.0})
+
+
+@pytest.mark.parametrize("mode", ["uniaxial", "biaxial", "planar"])
+@pytest.mark.parametrize("law", ["adipose", "ogden3"])
+def test_ogden_matches_incompressible_closed_form(law, mode):
+    """Exact eigenvalues: the hand-coded Ogden equals the closed-form nominal stress to 1e-10, where
+    FElupe's AD Ogden is 1e-7 off (tests/materials/test_closed_form.py)."""
+    from needletissue.materials import closed_form as cf
+
+    model, p = LAWS[law]
+    stretch = np.concatenate([np.linspace(0.6, 0.98, 12), np.linspace(1.02, 2.0, 25)])
+    view = fem.ViewMaterialIncompressible(materials.Material("t", model, dict(p)).isochoric())
+    _, P, _ = getattr(view, mode)(stretch)
+    np.testing.assert_allclose(P, cf.nominal_stress(model, p, mode, stretch), rtol=1e-10, atol=0)
