@@ -92,7 +92,7 @@ def test_quality_and_fidelity_bounds(balls):
     _, _, mesh, fid = balls
     assert fid.n_inverted == 0 and fid.n_slivers == 0
     assert fid.min_dihedral_deg >= 10.0
-    assert fid.p01_dihedral_deg >= 19.0
+    assert fid.p01_dihedral_deg >= 20.0                   # 22.1 measured (issue 16: >= 20)
     assert min(fid.dice.values()) >= 0.9
     assert fid.hausdorff95_voxels <= 1.0
     assert mesh.info["method"] == "smooth" and mesh.info["subdomain_label_purity"] > 0.9

@@ -22,7 +22,9 @@ Route (one path from the label map to the mesh, `tet_mesh(..., method="smooth")`
 7. sliver removal (remove_slivers): what step 6 leaves below the goal are flat elements capping an
    interface edge; 2-3 flips and edge removals within one tissue, a flat element (<= 1/3 voxel thick)
    handed to the tissue across its interface (an interface edge flip), interior edge splits and, last,
-   collapses of edges <= 1/3 voxel;
+   collapses of edges <= 1/3 voxel; then step 6's relocation once more on the stars of the elements
+   below 20 deg (polish_nodes: the splits' new nodes and the flips' new elements had not been
+   relocated), and one more sliver pass + relocation if that leaves an element below the sliver target;
 8. bone split back into cortical / cancellous per tetrahedron (the split is a rule, see imaging.segment),
    after steps 6-7: the split is no interface, so its element-staircase nodes are free during them. Each
    element's cortical fraction is sampled on the label map and the cortex keeps the label map's share of
