@@ -131,8 +131,8 @@ def relocate(x, cells, star_start, star_elems, movable, sliding, normal, md, tar
 
 @njit(cache=True)
 def min_dihedral(x, cells):
-    """Smallest dihedral angle (deg) of every tetrahedron (smooth.vol_min_dihedral's angle): ~20x faster than
-    the NumPy version on the CT's 1.2 M elements, which cost 1.2 s CPU per call."""
+    """Smallest dihedral angle (deg) of every tetrahedron (smooth.vol_min_dihedral's angle, to 1e-13 deg):
+    0.2 s instead of the NumPy version's 1.5 s CPU on the CT's 1.2 M elements."""
     out = np.empty(cells.shape[0])
     P, nrm = np.empty((4, 3)), np.empty((4, 3))
     for e in range(cells.shape[0]):
