@@ -92,7 +92,7 @@ def test_quality_and_fidelity_bounds(balls):
     _, _, mesh, fid = balls
     assert fid.n_inverted == 0 and fid.n_slivers == 0
     assert fid.min_dihedral_deg >= 10.0
-    assert fid.p01_dihedral_deg >= 19.0
+    assert fid.p01_dihedral_deg >= 20.0                   # 22.1 measured (issue 16: >= 20)
     assert min(fid.dice.values()) >= 0.9
     assert fid.hausdorff95_voxels <= 1.0
     assert mesh.info["method"] == "smooth" and mesh.info["subdomain_label_purity"] > 0.9
@@ -439,3 +439,31 @@ def test_solids_need_the_smooth_method():
     s = Solids(["needle_1"], np.zeros((3, 3)), np.array([[0, 1, 2]]), lambda p, g=0.0: np.full(len(p), -1), 1.0)
     with pytest.raises(InputError, match="method"):
         tet_mesh(make_seg(arr, tissues), config=MeshConfig(method="voxel"), solids=s)
+
+
+def test_compiled_min_dihedral_is_vol_min_dihedrals_angle():
+    from needletissue.geometry.relocate_kernel import min_dihedral
+
+    x, c, _ = _slivered_two_tissue_box(n_slivers=4)
+    assert np.allclose(min_dihedral(x, c), vol_min_dihedral(x[c])[1], rtol=0, atol=1e-9)
+
+
+def test_polish_moves_only_the_nodes_of_elements_below_target_and_raises_the_worst():
+    from needletissue.geometry.smooth import polish_nodes
+
+    x, c, tag = _slivered_two_tissue_box(n_slivers=12)
+    inter, free, faces = face_pairs(c, tag)
+    on = np.zeros(len(x), bool)
+    on[np.unique(faces[np.concatenate([inter, free])])] = True
+    md0 = vol_min_dihedral(x[c])[1]
+    bad_nodes = np.unique(c[md0 < 20.0])
+    y, moved, worst = polish_nodes(x, c, tag, 20.0)
+    vol, md = vol_min_dihedral(y[c])
+    assert moved > 0 and (vol > 0).all() and worst == pytest.approx(md.min()) and md.min() > md0.min() + 1.0
+    changed = np.flatnonzero((y != x).any(1))
+    assert np.isin(changed, bad_nodes).all()                 # nothing outside the stars it was given
+    # interface nodes only slide: the interface x = 5 and the box faces keep their planes
+    assert np.allclose(y[on & np.isclose(x[:, 0], 5.0), 0], 5.0, atol=1e-9)
+    for k in range(3):
+        for b in (0.0, 10.0):
+            assert np.allclose(y[np.isclose(x[:, k], b), k], b, atol=1e-9)

@@ -175,7 +175,7 @@ def test_smooth_route_mesh_has_exact_needles_the_model_regions_and_supports(smoo
     """`mesher="smooth"`: the segmentation's smooth conforming mesh with the pins and the clamp inserted
     exactly. Every model region and support set is there, the pins' surface nodes lie on the cylinders to
     1e-6 mm and the pins have the inscribed polygon's volume, the quality goals of the `mesh` route hold
-    (min dihedral >= 9.5 deg against the goal's 10, 1st percentile >= 20), the supports lie on the crop's cut planes, and the bone
+    (min dihedral >= 10 deg, 1st percentile >= 20), the supports lie on the crop's cut planes, and the bone
     keeps its voxel volume within 3 %."""
     from needletissue.geometry.tetmesh import tet_quality
 
@@ -187,9 +187,9 @@ def test_smooth_route_mesh_has_exact_needles_the_model_regions_and_supports(smoo
     assert np.array_equal(np.sort(ids), np.arange(len(m.cells)))
     q = tet_quality(m.points, m.cells)
     assert q["volume"].min() > 0
-    # issue 16's goal is 10 deg; with this install (gmsh 4.15.2, tetgen 0.8.4, numpy 2.4.6) one body-wall
-    # element is left at 9.93 deg (12.8 before; docs/pelvis_model.md): asserted at 9.5, the goal reported unmet
-    assert q["min_dihedral"].min() >= 9.5 and np.percentile(q["min_dihedral"], 1) >= 20.0
+    # 12.2-13.0 deg over 9 runs with the PLC jittered by 1e-7 mm (before the relocation after the sliver
+    # removal: 9.7-12.3, the 9.93 of a fresh install among them; docs/pelvis_model.md)
+    assert q["min_dihedral"].min() >= 10.0 and np.percentile(q["min_dihedral"], 1) >= 20.0
     r = site.diameter / 2
     for i, (b, t) in enumerate(m.needle_axes):
         nodes = np.unique(m.cells[m.regions[f"needle_{i + 1}"]])
