@@ -8,14 +8,18 @@ another) and the smallest barrier distance per interface (mm; the sides start 0.
 "CONVERGED" line per load increment (force reached, iterations, CPU s of the process) and a summary
 (per force: needle deformation, steps, iterations, cut-backs, gap opening, interpenetration). CPU
 is time.process_time (all threads): state the load average beside it. --bonded runs the same model
-bonded, for the cost ratio.
+bonded, for the cost ratio. --save DIR writes the converged state of every increment
+(DIR/lam_<load factor>.pkl: fields, bodies' states); --restart FILE continues from one (the first
+100 N of the default mesh cost ~760 s CPU) to the --forces given.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import time
+from pathlib import Path
 
 import felupe
 import ipctk
@@ -40,6 +44,9 @@ def main(argv=None):
     ap.add_argument("--kappa-scale", default="", help="PAIR=FACTOR,...: barrier stiffness x FACTOR")
     ap.add_argument("--no-project", action="store_true", help="stalled Newton: line search without PSD projection")
     ap.add_argument("--bonded", action="store_true")
+    ap.add_argument("--save", help="directory: the converged state of every increment")
+    ap.add_argument("--restart", help="a state saved by --save: continue from its load")
+    ap.add_argument("--initial-step", type=float, help="first increment (load factor of the largest force)")
     a = ap.parse_args(argv)
 
     cfg = with_geometry(NeedleModelConfig(forces=tuple(float(f) for f in a.forces.split(",")), ritz=False),
@@ -61,6 +68,46 @@ def main(argv=None):
         return out
 
     contact.items = items
+    fmax = max(cfg.forces)
+    saved = pickle.loads(Path(a.restart).read_bytes()) if a.restart else None
+    held = {}  # the model, for --save
+
+    def items_restarted(model):
+        out = items(model)
+        held["model"] = model
+        if saved is not None:
+            for f, v in zip(model.field.fields, saved["fields"]):
+                f.values[:] = v
+            for name, c in saved["bodies"].items():
+                model.bodies[name].restore(c)
+            for i in out:  # the slip reference: the converged state
+                i.results.statevars = np.asarray(model.field[0].values)[i.surface.vertices].copy()
+        return out
+
+    def save(rec):
+        print("EVENT", json.dumps(rec), flush=True)
+        if a.save and rec["event"] == "increment":
+            m = held["model"]
+            lam = rec["load_factor"]
+            state = {"load_factor": lam, "force_N": lam * fmax, "fmax": fmax,
+                     "fields": [f.values.copy() for f in m.field.fields],
+                     "bodies": {k: b.checkpoint() for k, b in m.bodies.items() if hasattr(b, "checkpoint")}}
+            Path(a.save).mkdir(parents=True, exist_ok=True)
+            (Path(a.save) / f"lam_{lam:.6f}.pkl").write_bytes(pickle.dumps(state))
+
+    import needletissue.fem as nfem
+    solve0 = nfem.solve
+
+    def solve_logged(*args, **kw):
+        kw["log"] = save
+        if saved is not None:
+            kw["start"] = saved["load_factor"] * saved["fmax"] / fmax
+        if a.initial_step:
+            kw["initial_step"] = a.initial_step
+        return solve0(*args, **kw)
+
+    nfem.solve = solve_logged
+    contact.items = items_restarted
     plugins_ = []  # the plugins of the running Newton solve
 
     class Log(felupe.Plugin):
@@ -127,6 +174,7 @@ def main(argv=None):
         r = run_needle_model(cfg) if a.bonded else run_needle_model(cfg, **contact.hooks())
     finally:
         felupe.newtonraphson = newton
+        nfem.solve = solve0
     per_force = r.extra.get("contact", {}).get("per_force", [{}] * len(r.results))
     print("SUMMARY", json.dumps({
         "cpu_s": time.process_time() - t0, "tetrahedra": r.mesh["tetrahedra"], "contact": not a.bonded,

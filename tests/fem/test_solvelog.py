@@ -6,7 +6,7 @@ import re
 import numpy as np
 import pytest
 
-from needletissue.errors import ConvergenceError
+from needletissue.errors import ConvergenceError, InputError
 from needletissue.fem import FEModel, Fixed, PrescribedDisplacement, TaggedMesh, solve
 from needletissue.fem.solvelog import SolveLog, read_log
 
@@ -71,3 +71,25 @@ def test_a_stopped_solve_logs_the_load_reached(block, tmp_path):
     assert len(inc) == 3 and ev[-1]["event"] == "stopped"
     assert ev[-1]["load_factor"] == pytest.approx(0.3) == inc[-1]["load_factor"]
     assert ev[-1]["load"] == pytest.approx(0.3)
+
+
+def test_a_restart_from_a_saved_state_reaches_the_same_solution(block):
+    """solve(start=...) continues from the fields and body states of a converged load factor (the
+    restarts of docs/contact.md): the end state equals an uninterrupted solve's to Newton's tolerance."""
+    bcs = [Fixed("zmin"), PrescribedDisplacement("zmax", (0, 0, 6.0))]
+    full = solve(FEModel(block, {"adipose": "adipose"}), bcs, [0.5, 1.0], progress=False)[-1]
+    first = FEModel(block, {"adipose": "adipose"})
+    solve(first, bcs, [0.5], progress=False)
+    again = FEModel(block, {"adipose": "adipose"})
+    for f, g in zip(again.field.fields, first.field.fields):
+        f.values[:] = g.values
+    for k, b in again.bodies.items():
+        b.restore(first.bodies[k].checkpoint())
+    events = []
+    rest = solve(again, bcs, [1.0], progress=False, start=0.5, log=events.append)[-1]
+    scale = np.abs(full.displacement).max()
+    assert np.abs(rest.displacement - full.displacement).max() < 1e-6 * scale
+    inc = [e for e in events if e["event"] == "increment"]
+    assert sum(e["increment"] for e in inc) == pytest.approx(0.5)  # it did not redo the first half
+    with pytest.raises(InputError, match="start"):
+        solve(FEModel(block, {"adipose": "adipose"}), bcs, [0.5], progress=False, start=0.5)

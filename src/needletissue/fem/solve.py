@@ -350,7 +350,8 @@ class _Progress:
 def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=(), progress: bool = True,
           initial_step: float | None = None, min_step: float = 1e-3, max_step: float | None = None,
           tol: float = 1e-8, maxiter: int | None = None, results: bool = True, predictor: bool = True,
-          linesearch: bool | None = None, substeps: int | None = None, log=None) -> list[FEResult]:
+          linesearch: bool | None = None, substeps: int | None = None, log=None,
+          start: float = 0.0) -> list[FEResult]:
     """Solve the model quasi-statically, one FEResult per requested load factor.
 
     bcs          : Fixed / PrescribedDisplacement / SurfaceForce; values and forces scale with the
@@ -392,6 +393,9 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                    "increment" (converged: load_factor, increment, iterations, cpu_s and wall_s since the
                    start, min_distance_mm per contact item), "cutback" (the failed increment and why),
                    "failed" (ConvergenceError: the load factor reached).
+
+    start        : load factor the model's fields (and bodies' states) already hold converged, e.g. a
+                   restart from a saved state (benchmarks/contact_newton_log.py --restart); default 0.
 
     Reactions: a dof fixed by several conditions (e.g. on two fixed surfaces that share an edge)
     counts once, for the first condition in `bcs` that constrains it, so the reactions of all
@@ -461,7 +465,9 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     mixed = [b for b in bodies if isinstance(b, fem.SolidBodyNearlyIncompressible)]
     pressure = _pressure_plugin(fem, mixed)
     plugins.insert(0, pressure)
-    lam, nsteps, nit, ncut = 0.0, 0, 0, 0
+    lam, nsteps, nit, ncut = check_number("start", start, ge=0), 0, 0, 0
+    if lams[0] <= lam:
+        raise InputError("start", f"must be below the first load factor {lams[0]:g}, got {lam:g}")
     last_du, last_dl = None, 0.0  # last converged increment, for the predictor
     last_p = [b.results.state.p.copy() for b in mixed]  # the mixed bodies' pressure there
     last_dp = None
