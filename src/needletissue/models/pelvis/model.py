@@ -127,7 +127,7 @@ class PelvisConfig:
     interfaces: str = "bonded"
     friction: dict = field(default_factory=dict)
     sliding_radius: float | None = None  # None: SLIDING_RADIUS
-    contact_dhat: float | None = None  # None: ContactSettings' default
+    contact_dhat: float | None = None  # None: needle_settings (models.contact)
     contact_eps_v: float | None = None
     solver: str = "auto"
     out: str | None = None
@@ -463,11 +463,11 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
         tm_solve = tm
     contact = None
     if config.interfaces != "bonded" or config.friction:
-        from needletissue.fem.contact import ContactSettings
-        from needletissue.models.contact import NeedleContact
+        from needletissue.models.contact import NeedleContact, needle_settings
 
+        # the needle model's settings (barrier per interface, virtual gap, friction smoothing): one rule
         contact = NeedleContact(config.interfaces, dict(config.friction),
-                                ContactSettings(**{k: v for k, v in (("dhat", config.contact_dhat),
+                                needle_settings(**{k: v for k, v in (("dhat", config.contact_dhat),
                                                                      ("eps_v", config.contact_eps_v)) if v is not None}),
                                 materials=MATERIALS)
         # split the contact interfaces (duplicate their nodes); muscle attachments stay bonded
