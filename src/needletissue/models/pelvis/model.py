@@ -198,6 +198,9 @@ def check_interface_name(name: str) -> None:
 # floors at 4e-8..1e-7 near the solution (the full step repeats; docs/contact.md), so 1e-8 cut back at the same
 # state until it failed; 1e-6 of the reactions is < 3e-4 N at 300 N (coarse mesh: 300 N, no cut-back)
 CONTACT_TOL = 1e-6
+# Newton iterations of a contact increment before it is cut back (fem.solve's default 25): converged
+# increments take 4-11 on the coarse mesh; the two that failed spent 25 each, half the run's iterations
+CONTACT_MAXITER = 15
 SOLVE_LOG = "solve_log.jsonl"  # in --out: one JSON line per converged increment, cut-back and the end
 ATTACHED = "@attached"  # suffix of the muscle cells kept bonded to bone while the interfaces are split
 
@@ -494,7 +497,7 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
     with log or nullcontext():
         fe = solve(model, bcs, load_factors=factors, solver=config.solver, progress=config.progress, items=items,
                    predictor=config.formulation == "mixed" and not items,  # as the needle model (bench.md)
-                   log=log, **({"tol": CONTACT_TOL} if items else {}))
+                   log=log, **({"tol": CONTACT_TOL, "maxiter": CONTACT_MAXITER} if items else {}))
     t_solve = time.perf_counter() - t0 - t_mesh - t_model
 
     qm = model.mesh
