@@ -199,7 +199,8 @@ def check_interface_name(name: str) -> None:
 # state until it failed; 1e-6 of the reactions is < 3e-4 N at 300 N (coarse mesh: 300 N, no cut-back)
 CONTACT_TOL = 1e-6
 # Newton iterations of a contact increment before it is cut back (fem.solve's default 25): converged
-# increments take 4-11 on the coarse mesh; the two that failed spent 25 each, half the run's iterations
+# increments take 4-6 on the coarse mesh (up to 17 with main's softer barriers); the two that failed cycled
+# at 1-3e-6 for 25 each, half of the run's iterations (docs/contact.md)
 CONTACT_MAXITER = 15
 SOLVE_LOG = "solve_log.jsonl"  # in --out: one JSON line per converged increment, cut-back and the end
 ATTACHED = "@attached"  # suffix of the muscle cells kept bonded to bone while the interfaces are split
