@@ -113,4 +113,13 @@ def test_pardiso_reanalyses_when_the_pattern_changes():
     x = s(B, np.ones(6))
     np.testing.assert_allclose(B @ x, 1.0)
     assert s._fun.analyses == 2
+    # a pattern within the analysed one (contact pairs gone again): no new analysis, the same solution
+    x = s((3 * A).tocsr(), np.ones(6))
+    np.testing.assert_allclose(3 * A @ x, 1.0)
+    C = (A + sp.diags([0.5] * 3, 3) + sp.diags([0.5] * 3, -3)).tocsr()  # outside: analyse the union of B and C
+    x = s(C, np.ones(6))
+    np.testing.assert_allclose(C @ x, 1.0)
+    x = s(B, np.ones(6))  # within the union
+    np.testing.assert_allclose(B @ x, 1.0)
+    assert s._fun.analyses == 3 and len(s._fun.pattern) == 1
     s.close()

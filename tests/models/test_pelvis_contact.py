@@ -59,6 +59,31 @@ def test_pressure_is_the_barriers_flat_contact_pressure(block):
     assert rest["mean_pressure_MPa"] < pressed["mean_pressure_MPa"]
 
 
+@pytest.mark.parametrize("materials", [None, {"hip_cancellous": "cancellous_bone", "needle_1": "needle"}])
+def test_bone_needle_barrier_carries_the_bones_modulus_at_half_dhat(materials):
+    """One barrier rule for the needle model (materials None) and the anatomical model (region ->
+    material): a flat bone-needle contact at d = dhat/2 carries PRESSURE_FRACTION x 3 mu0 of the bone
+    (the softer side), not 0.1 of it (the anatomical model's cortical rim squeezed that barrier to 9e-5 mm)."""
+    from types import SimpleNamespace
+
+    import felupe as fem
+
+    from needletissue import materials as registry
+    from needletissue.models.contact import PRESSURE_FRACTION, NeedleContact, needle_settings
+
+    bone, pin = ("cancellous_bone", "needle_1") if materials is None else tuple(materials)
+    mesh = stacked_boxes({bone: ((0, 0, -5), (20, 20, 0)), pin: ((5, 5, 0), (15, 15, 5))}, 2.5)
+    contact = NeedleContact("paper", settings=needle_settings(), materials=materials)
+    mesh = contact.prepare(mesh)
+    field = fem.FieldContainer([fem.Field(fem.RegionTetra(fem.Mesh(mesh.points, mesh.cells, "tetra")), dim=3)])
+    (item,) = contact.items(SimpleNamespace(mesh=mesh, field=field))
+    st = item.settings
+    modulus = 3.0 * registry.get("cancellous_bone").initial_shear_modulus
+    assert PRESSURE_FRACTION["bone-needle"] == 1.0
+    assert st.kappa * unit_pressure(st.dhat, 0.5 * st.dhat) == pytest.approx(modulus, rel=1e-9)
+    assert st.gap == pytest.approx(needle_settings().gap) and st.eps_v == needle_settings().eps_v
+
+
 @pytest.mark.slow
 @pytest.mark.data
 def test_paper_interfaces_converge_in_equilibrium_and_report_each_interface(tmp_path):

@@ -53,7 +53,7 @@ def register(app, groups) -> None:
                                            help="Contact barrier distance, mm (> 0; default 0.1)."),
         contact_eps_v: float = typer.Option(None, "--contact-eps-v",
                                             help="Friction smoothing: slip per load increment below which an "
-                                                 "interface sticks, mm (> 0; default 0.001)."),
+                                                 "interface sticks, mm (> 0; default 0.01, the needle model's)."),
         config_file: Path = typer.Option(None, "--config", help="config.toml of an earlier `fe pelvis --out` "
                                          "run (PelvisConfig fields; units mm, N): runs it again; options given "
                                          "on the command line override it."),

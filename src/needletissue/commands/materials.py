@@ -7,6 +7,7 @@ import warnings
 from enum import Enum
 from pathlib import Path
 
+import numpy as np
 import typer
 
 
@@ -157,7 +158,9 @@ def register(app: typer.Typer, groups) -> None:
         else:
             print(f"{r.model} ({r.law}) fitted to {r.n_points} {r.mode} points of {data}")
             for k, v in r.parameters.items():
-                print(f"  {k:6s} = {v}")
+                # 8 digits: the optimum's last digits differ between BLAS builds (--json keeps all of them)
+                shown = ", ".join(f"{x:.8g}" for x in np.atleast_1d(v))
+                print(f"  {k:6s} = {f'[{shown}]' if np.ndim(v) else shown}")
             print(f"  RMSE = {r.rmse_MPa:.6g} MPa, R^2 = {r.r2:.8f}")
             print(f"  Drucker-stable {r.mode} stretch range [{r.stable_range[0]:.4g}, {r.stable_range[1]:.4g}]"
                   f" (data {r.data_stretch_range[0]:.4g}-{r.data_stretch_range[1]:.4g})")

@@ -135,8 +135,8 @@ class NeedleContact:
             modulus = min(3.0 * materials.get(names.get(r, r)).initial_shear_modulus
                           for r in itf.regions_a + itf.regions_b)
             settings = self.settings or needle_settings()
-            if settings.stiffness is None:  # PRESSURE_FRACTION: the needle model's pin (materials None)
-                fraction = PRESSURE_FRACTION.get(itf.name) if self.materials is None else None
+            if settings.stiffness is None:  # PRESSURE_FRACTION: the pin's interfaces, both models
+                fraction = PRESSURE_FRACTION.get(itf.name)
                 settings = replace(settings, youngs_modulus=modulus,
                                    pressure_fraction=fraction or settings.pressure_fraction)
             surface = ContactSurface.build(model.mesh.points, [itf], self.friction, gap=settings.gap)

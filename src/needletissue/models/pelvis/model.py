@@ -128,7 +128,7 @@ class PelvisConfig:
     interfaces: str = "bonded"
     friction: dict = field(default_factory=dict)
     sliding_radius: float | None = None  # None: SLIDING_RADIUS
-    contact_dhat: float | None = None  # None: ContactSettings' default
+    contact_dhat: float | None = None  # None: needle_settings (models.contact)
     contact_eps_v: float | None = None
     solver: str = "auto"
     out: str | None = None
@@ -199,6 +199,10 @@ def check_interface_name(name: str) -> None:
 # floors at 4e-8..1e-7 near the solution (the full step repeats; docs/contact.md), so 1e-8 cut back at the same
 # state until it failed; 1e-6 of the reactions is < 3e-4 N at 300 N (coarse mesh: 300 N, no cut-back)
 CONTACT_TOL = 1e-6
+# Newton iterations of a contact increment before it is cut back (fem.solve's default 25): converged
+# increments take 4-6 on the coarse mesh (up to 17 with main's softer barriers); the two that failed cycled
+# at 1-3e-6 for 25 each, half of the run's iterations (docs/contact.md)
+CONTACT_MAXITER = 15
 ATTACHED = "@attached"  # suffix of the muscle cells kept bonded to bone while the interfaces are split
 
 
@@ -463,11 +467,11 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
         tm_solve = tm
     contact = None
     if config.interfaces != "bonded" or config.friction:
-        from needletissue.fem.contact import ContactSettings
-        from needletissue.models.contact import NeedleContact
+        from needletissue.models.contact import NeedleContact, needle_settings
 
+        # the needle model's settings (barrier per interface, virtual gap, friction smoothing): one rule
         contact = NeedleContact(config.interfaces, dict(config.friction),
-                                ContactSettings(**{k: v for k, v in (("dhat", config.contact_dhat),
+                                needle_settings(**{k: v for k, v in (("dhat", config.contact_dhat),
                                                                      ("eps_v", config.contact_eps_v)) if v is not None}),
                                 materials=MATERIALS)
         # split the contact interfaces (duplicate their nodes); muscle attachments stay bonded
@@ -494,7 +498,7 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
     with log or nullcontext():
         fe = solve(model, bcs, load_factors=factors, solver=config.solver, progress=config.progress, items=items,
                    predictor=config.formulation == "mixed" and not items,  # as the needle model (bench.md)
-                   log=log, **({"tol": CONTACT_TOL} if items else {}))
+                   log=log, **({"tol": CONTACT_TOL, "maxiter": CONTACT_MAXITER} if items else {}))
     t_solve = time.perf_counter() - t0 - t_mesh - t_model
 
     qm = model.mesh
