@@ -7,15 +7,8 @@ import pytest
 from needletissue import materials
 from needletissue.materials import closed_form as cf
 
-LAWS = {
-    "muscle": ("mooney_rivlin_5", materials.get("muscle").parameters),
-    "mr5_positive": ("mooney_rivlin_5", dict(C10=0.2, C01=0.05, C20=0.01, C11=0.004, C02=0.002)),
-    "mooney_rivlin": ("mooney_rivlin", dict(C10=0.2, C01=0.05)),
-    "neo_hooke": ("neo_hooke", dict(mu=0.3)),
-    "yeoh": ("yeoh", dict(C10=0.1, C20=-0.01, C30=0.002)),
-    "adipose": ("ogden", materials.get("adipose").parameters),
-    "ogden3": ("ogden", dict(mu=[0.2, -0.01, 0.003], alpha=[1.5, -2.0, 9.0])),
-}
+from law_cases import LAWS
+
 # Tension and compression, without the undeformed state (P = 0 there; checked separately).
 STRETCH = np.concatenate([np.linspace(0.6, 0.98, 12), np.linspace(1.02, 2.0, 25)])
 VIEWS = {"uniaxial": "uniaxial", "biaxial": "biaxial", "planar": "planar"}
