@@ -363,7 +363,7 @@ def tangential_collisions(cmesh, V, collisions, barrier, mu):
     type: edge-edge, edge-vertex or vertex-vertex (the line-line closest point of nearly parallel
     edges lies far outside them). mu: per collision vertex, blended as ipctk does (interpolated at
     the closest point, the two sides averaged). Returns the TangentialCollisions and, per added pair,
-    (tangential collision, edge-edge normal collision, m, the edge pair's stencil positions)."""
+    (tangential collision, m, the edge pair's vertex ids, grad m by their positions)."""
     tangential = ipctk.TangentialCollisions()
     tangential.build(cmesh, V, collisions, barrier, mu, mu)
     E, F = cmesh.edges, cmesh.faces
@@ -398,7 +398,8 @@ def tangential_collisions(cmesh, V, collisions, barrier, mu):
         t.weight = c.weight * m
         t.mu_s = t.mu_k = t.mu_s_effective_lagged = t.mu_k_effective_lagged = 0.5 * (mus[0] + mus[1])
         lists[kind].append(t)
-        added.append((t, c, m, x))
+        # numbers only: a reference into `collisions` dangles (segfault) once it is rebuilt
+        added.append((t, m, np.array([a0, a1, b0, b1]), np.asarray(c.mollifier_gradient(x)).copy()))
     if not added:
         return tangential, added
     # into a new set: the lists read from `tangential` refer into its vectors (assigning them back
@@ -418,16 +419,16 @@ def mollifier_force_jacobian(friction, added, cmesh, rest, V, slip, barrier):
     E, F = cmesh.edges, cmesh.faces
     n = rest.size
     rows, cols, vals = [], [], []
-    for t, c, m, x in added:
+    for t, m, ids, grad_m in added:
         if m <= 0.0:  # exactly parallel: grad m = 0
             continue
         x0 = t.dof(rest, E, F)
         f = friction.force(t, x0, t.dof(V, E, F) - x0, t.dof(slip, E, F), barrier)
         rows_ = (3 * np.asarray(t.vertex_ids(E, F))[:t.num_vertices(), None] + np.arange(3)).ravel()
-        cols_ = (3 * np.asarray(c.vertex_ids(E, F))[:, None] + np.arange(3)).ravel()
+        cols_ = (3 * ids[:, None] + np.arange(3)).ravel()
         rows.append(np.repeat(rows_, 12))
         cols.append(np.tile(cols_, len(rows_)))
-        vals.append(np.outer(f / m, c.mollifier_gradient(x)).ravel())
+        vals.append(np.outer(f / m, grad_m).ravel())
     if not vals:
         return csr_matrix((n, n))
     return csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
