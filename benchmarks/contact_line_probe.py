@@ -5,8 +5,9 @@ bone-needle item also the collision counts per type and the jumps of its barrier
 
     python benchmarks/contact_line_probe.py 4 --needles 1 --forces 28 --restart STATES/lam_0.074882.pkl --initial-step 1
 
-(docs/contact.md, "The residual floor": a jump of the bone-needle friction when an edge-edge pair
-leaves the collision set, 2e-7 mm into the Newton step.)
+(docs/contact.md, "The residual floor": a jump of the bone-needle friction 2e-7 mm into the Newton
+step; "Edge-edge friction with the mollifier": its cause, a nearly parallel edge-edge pair's friction
+appearing in full where its mollifier reaches 1, and the fix.)
 """
 import json
 import sys

@@ -329,3 +329,107 @@ def test_implicit_friction_tangent_matches_finite_differences():
     fd = (r[0] - r[1]) / (2 * eps)
     assert np.linalg.norm(K @ du.ravel() - fd) < 1e-6 * np.linalg.norm(fd)
     assert abs(K - K.T).max() > 1e-3 * abs(K).max()  # friction makes it non-symmetric
+
+
+def _edge_pair(theta, slide=0.01, crossing=True):
+    """Edge a on the x axis, edge b 0.095 mm (0.95 dhat) above it in y and turned by theta about y,
+    crossing a's line at x = 0.7 (closest points inside both edges; crossing=False: b turned about
+    its first end, the closest points at that end: ipctk's edge-vertex type), b sliding along x by
+    `slide`. Rest: parallel (ipctk's mollifier threshold eps_x = 1e-3 |a|^2 |b|^2 = 1e-3 mm^4)."""
+    import ipctk
+
+    def pts(t):
+        z0, z1 = (-0.5 * t, 0.5 * t) if crossing else (0.0, t)
+        return np.asfortranarray([[0, 0, 0], [1, 0, 0], [0.2, 0.095, z0], [1.2, 0.095, z1]], float)
+
+    rest = pts(0.0)
+    cmesh = ipctk.CollisionMesh(rest, np.array([[0, 1], [2, 3]], np.int32), np.zeros((0, 3), np.int32))
+    V = pts(theta)
+    collisions = ipctk.NormalCollisions()
+    collisions.use_area_weighting = True
+    collisions.build(cmesh, V, DHAT)
+    slip = np.asfortranarray(np.zeros_like(V))
+    slip[2:, 0] = slide
+    return cmesh, rest, V, collisions, slip
+
+
+def _edge_pair_friction(theta, crossing=True):
+    import ipctk
+    from needletissue.fem.contact.item import tangential_collisions
+
+    cmesh, rest, V, collisions, slip = _edge_pair(theta, crossing=crossing)
+    barrier = ipctk.BarrierPotential(DHAT, 1.0, True)
+    friction = ipctk.FrictionPotential(EPS_V)
+    tangential, added = tangential_collisions(cmesh, V, collisions, barrier, np.full(4, MU))
+    f = friction.force(tangential, cmesh, rest, np.asfortranarray(V - rest), slip, barrier)
+    if not crossing:
+        return f, None, None, added
+    (c,) = collisions.ee_collisions  # one edge-edge pair, closest points inside both edges
+    x = c.dof(V, cmesh.edges, cmesh.faces)
+    # the same pair, unmollified, for reference
+    full = ipctk.EdgeEdgeTangentialCollision(c, x, barrier)
+    full.mu_s = full.mu_k = full.mu_s_effective_lagged = full.mu_k_effective_lagged = MU
+    f1 = friction.force(full, c.dof(rest, cmesh.edges, cmesh.faces), x - c.dof(rest, cmesh.edges, cmesh.faces),
+                        c.dof(slip, cmesh.edges, cmesh.faces), barrier)
+    return f, f1, c.mollifier(x), added
+
+
+def test_edge_edge_friction_scales_with_the_barriers_mollifier_and_is_continuous():
+    """A nearly parallel edge-edge pair inside dhat: its barrier is scaled by ipctk's mollifier m
+    (0 parallel .. 1 at sin^2 = eps_x); its friction must be m times the unmollified one, so it grows
+    continuously through the threshold. ipctk 1.6.1's TangentialCollisions.build leaves the pairs
+    with m < 1 out: friction 0 below the threshold, the full Coulomb force just above (a jump of
+    the whole pair's friction: the residual floor of the default needle mesh)."""
+    import ipctk
+
+    threshold = np.sqrt(1e-3)  # theta with |a x b|^2 = theta^2 = eps_x (from the rest lengths, 1 mm)
+    for theta in (1e-3, 0.01, 0.02, 0.03):
+        f, f1, m, added = _edge_pair_friction(theta)
+        assert 0 < m < 1 and len(added) == 1
+        assert np.linalg.norm(f1) > 1e-4  # sliding (slip 10 eps_v): mu N per unit area-weight
+        np.testing.assert_allclose(f, m * f1, rtol=1e-10, atol=1e-16)
+    below, f1_below, m_below, _ = _edge_pair_friction(threshold * (1 - 1e-7))
+    above, f1_above, m_above, added = _edge_pair_friction(threshold * (1 + 1e-7))
+    assert m_above == 1 and not added and m_below > 1 - 1e-6
+    np.testing.assert_allclose(above, f1_above, rtol=1e-12)  # ipctk's own pair above the threshold
+    assert np.linalg.norm(below - above) < 1e-5 * np.linalg.norm(above)
+    # closest points at an edge end: above the threshold ipctk's set has the edge-vertex pair
+    below, _, _, added = _edge_pair_friction(threshold * (1 - 1e-7), crossing=False)
+    above, _, _, none = _edge_pair_friction(threshold * (1 + 1e-7), crossing=False)
+    assert len(added) == 1 and isinstance(added[0][0], ipctk.EdgeVertexTangentialCollision) and not none
+    assert np.linalg.norm(above) > 1e-4
+    assert np.linalg.norm(below - above) < 1e-5 * np.linalg.norm(above)
+
+
+def test_edge_edge_friction_tangent_includes_the_mollifiers_derivative():
+    """lag="iteration": d(friction force)/d(positions) of a mollified pair = ipctk's force_jacobian
+    (velocities + lagged displacements, which differentiate N, not m) + F / m (x) grad m: central
+    differences of the force agree to 1e-6."""
+    import ipctk
+    from needletissue.fem.contact.item import mollifier_force_jacobian, tangential_collisions
+
+    theta = 0.02
+    cmesh, rest, V, collisions, slip = _edge_pair(theta)
+    barrier = ipctk.BarrierPotential(DHAT, 1.0, True)
+    friction = ipctk.FrictionPotential(EPS_V)
+    mu = np.full(4, MU)
+
+    def force(dV):
+        Vp = np.asfortranarray(V + dV)
+        col = ipctk.NormalCollisions()
+        col.use_area_weighting = True
+        col.build(cmesh, Vp, DHAT)
+        t, _ = tangential_collisions(cmesh, Vp, col, barrier, mu)
+        return friction.force(t, cmesh, rest, np.asfortranarray(Vp - rest), np.asfortranarray(slip + dV), barrier)
+
+    t, added = tangential_collisions(cmesh, V, collisions, barrier, mu)
+    W = ipctk.FrictionPotential.DiffWRT
+    args = (t, cmesh, rest, np.asfortranarray(V - rest), slip, barrier)
+    J = friction.force_jacobian(*args, W.VELOCITIES) + friction.force_jacobian(*args, W.LAGGED_DISPLACEMENTS)
+    Jm = mollifier_force_jacobian(friction, added, cmesh, rest, V, slip, barrier)
+    rng = np.random.default_rng(1)
+    d = rng.standard_normal(V.shape)
+    eps = 1e-7
+    fd = (force(eps * d) - force(-eps * d)) / (2 * eps)
+    assert np.linalg.norm(J @ d.ravel() - fd) > 1e-3 * np.linalg.norm(fd)  # ipctk's alone misses m's part
+    assert np.linalg.norm((J + Jm) @ d.ravel() - fd) < 1e-6 * np.linalg.norm(fd)

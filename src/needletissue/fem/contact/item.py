@@ -354,6 +354,86 @@ class _ContactResults(Results):
             self._item.update_lag()
 
 
+def tangential_collisions(cmesh, V, collisions, barrier, mu):
+    """ipctk's friction pairs of `collisions` at the vertices V, plus those of the nearly parallel
+    edge-edge collisions that ipctk's build leaves out (mollifier m < 1), with their weight times m
+    like their barrier's: such a pair's friction then grows with its barrier instead of jumping from
+    0 to its full value where m reaches 1 (docs/contact.md, "Edge-edge friction with the mollifier").
+    Each is the pair ipctk's collision set makes of the edges above the threshold, by its distance
+    type: edge-edge, edge-vertex or vertex-vertex (the line-line closest point of nearly parallel
+    edges lies far outside them). mu: per collision vertex, blended as ipctk does (interpolated at
+    the closest point, the two sides averaged). Returns the TangentialCollisions and, per added pair,
+    (tangential collision, m, the edge pair's vertex ids, grad m by their positions)."""
+    tangential = ipctk.TangentialCollisions()
+    tangential.build(cmesh, V, collisions, barrier, mu, mu)
+    E, F = cmesh.edges, cmesh.faces
+    T = ipctk.EdgeEdgeDistanceType
+    added, lists = [], {"ee": [], "ev": [], "vv": []}
+    for c in collisions.ee_collisions:
+        x = c.dof(V, E, F)
+        m = c.mollifier(x)
+        if m >= 1.0:  # ipctk's build has it
+            continue
+        a0, a1, b0, b1 = (int(i) for i in c.vertex_ids(E, F))
+        ea, eb = int(c.edge0_id), int(c.edge1_id)
+        kind, pair = {
+            T.EA_EB: ("ee", c),
+            T.EA_EB0: ("ev", (ea, b0)), T.EA_EB1: ("ev", (ea, b1)),
+            T.EA0_EB: ("ev", (eb, a0)), T.EA1_EB: ("ev", (eb, a1)),
+            T.EA0_EB0: ("vv", (a0, b0)), T.EA0_EB1: ("vv", (a0, b1)),
+            T.EA1_EB0: ("vv", (a1, b0)), T.EA1_EB1: ("vv", (a1, b1)),
+        }[c.dtype]
+        if kind == "ee":
+            t = ipctk.EdgeEdgeTangentialCollision(c, x, barrier)
+            mus = [mu[i] + (mu[j] - mu[i]) * t.closest_point[k] for k, (i, j) in enumerate(((a0, a1), (b0, b1)))]
+        elif kind == "ev":
+            n = ipctk.EdgeVertexNormalCollision(*pair)
+            t = ipctk.EdgeVertexTangentialCollision(n, n.dof(V, E, F), barrier)
+            i, j = E[pair[0]]
+            mus = [mu[i] + (mu[j] - mu[i]) * t.closest_point[0], mu[pair[1]]]
+        else:
+            n = ipctk.VertexVertexNormalCollision(*pair)
+            t = ipctk.VertexVertexTangentialCollision(n, n.dof(V, E, F), barrier)
+            mus = [mu[pair[0]], mu[pair[1]]]
+        t.weight = c.weight * m
+        t.mu_s = t.mu_k = t.mu_s_effective_lagged = t.mu_k_effective_lagged = 0.5 * (mus[0] + mus[1])
+        lists[kind].append(t)
+        # numbers only: a reference into `collisions` dangles (segfault) once it is rebuilt
+        added.append((t, m, np.array([a0, a1, b0, b1]), np.asarray(c.mollifier_gradient(x)).copy()))
+    if not added:
+        return tangential, added
+    # into a new set: the lists read from `tangential` refer into its vectors (assigning them back
+    # to it segfaulted)
+    out = ipctk.TangentialCollisions()
+    out.vv_collisions = list(tangential.vv_collisions) + lists["vv"]
+    out.ev_collisions = list(tangential.ev_collisions) + lists["ev"]
+    out.ee_collisions = list(tangential.ee_collisions) + lists["ee"]
+    out.fv_collisions = list(tangential.fv_collisions)
+    return out, added
+
+
+def mollifier_force_jacobian(friction, added, cmesh, rest, V, slip, barrier):
+    """The part of d(friction force)/d(positions) that ipctk's force_jacobian(LAGGED_DISPLACEMENTS)
+    misses for the pairs of tangential_collisions (lag="iteration"): it differentiates the normal
+    force, not the weight's mollifier; F = m F1, so F1 (x) grad m = F / m (x) grad m."""
+    E, F = cmesh.edges, cmesh.faces
+    n = rest.size
+    rows, cols, vals = [], [], []
+    for t, m, ids, grad_m in added:
+        if m <= 0.0:  # exactly parallel: grad m = 0
+            continue
+        x0 = t.dof(rest, E, F)
+        f = friction.force(t, x0, t.dof(V, E, F) - x0, t.dof(slip, E, F), barrier)
+        rows_ = (3 * np.asarray(t.vertex_ids(E, F))[:t.num_vertices(), None] + np.arange(3)).ravel()
+        cols_ = (3 * ids[:, None] + np.arange(3)).ravel()
+        rows.append(np.repeat(rows_, 12))
+        cols.append(np.tile(cols_, len(rows_)))
+        vals.append(np.outer(f / m, grad_m).ravel())
+    if not vals:
+        return csr_matrix((n, n))
+    return csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+
+
 class FrictionalContact:
     """FElupe item: IPC barrier contact + lagged smoothed friction on split interfaces.
 
@@ -396,6 +476,7 @@ class FrictionalContact:
         self._accepted = None  # (slip reference, lag) with which the last converged step was solved
         self._base = None  # displacements of the last tangent (the Newton iterate); None: the converged ones
         self._state = None
+        self._mollified = []  # mollified edge-edge friction pairs of the last _tangential
         self.project = False  # PSD-projected Hessians (StallLinesearch sets it while Newton stalls)
         self.assemble = Assemble(vector=self._vector, matrix=self._matrix)
 
@@ -443,7 +524,7 @@ class FrictionalContact:
         state = {"u": u, "V": V, "admissible": admissible}
         if admissible:
             self.collisions.build(self.cmesh, V, self.settings.dhat)
-            self.tangential = self._tangential(V, self.collisions, self._lagged)
+            self.tangential, self._mollified = self._tangential(V, self.collisions, self._lagged)
             state["slip"] = np.asfortranarray(u - u_prev)
         self._state = state
         self.results._statevars = u.copy()
@@ -451,12 +532,14 @@ class FrictionalContact:
 
     def _tangential(self, V, collisions, lagged):
         """Friction pairs: from the current collisions (lag="iteration") or the lagged (vertices,
-        collisions) of a converged state (lag="step"; None: none yet, frictionless)."""
+        collisions) of a converged state (lag="step"; None: none yet, frictionless), and the
+        mollified edge-edge pairs among them (tangential_collisions)."""
         tangential = ipctk.TangentialCollisions()
         lag = (V, collisions) if self.settings.lag == "iteration" else lagged
+        mollified = []
         if lag is not None and np.any(self.mu > 0) and len(lag[1]) > 0:
-            tangential.build(self.cmesh, lag[0], lag[1], self.barrier, self.mu, self.mu)
-        return tangential
+            tangential, mollified = tangential_collisions(self.cmesh, lag[0], lag[1], self.barrier, self.mu)
+        return tangential, mollified
 
     def _gradient(self, V, collisions, tangential, slip):
         """Gradient of barrier + friction potential on the collision-vertex dofs."""
@@ -501,6 +584,7 @@ class FrictionalContact:
             args = (self.tangential, self.cmesh, self.rest, np.asfortranarray(s["V"] - self.rest), s["slip"], self.barrier)
             W = ipctk.FrictionPotential.DiffWRT
             H = H - self.friction.force_jacobian(*args, W.VELOCITIES) - self.friction.force_jacobian(*args, W.LAGGED_DISPLACEMENTS)
+            H = H - mollifier_force_jacobian(self.friction, self._mollified, self.cmesh, self.rest, s["V"], s["slip"], self.barrier)
         elif len(self.tangential) > 0:
             H = H + self.friction.hessian(self.tangential, self.cmesh, s["slip"], psd)
         H = coo_matrix(H)
@@ -543,7 +627,7 @@ class FrictionalContact:
         reference, lag = self._accepted if self._accepted is not None else (self.results.statevars, self._lagged)
         collisions = _collisions()
         collisions.build(self.cmesh, V, self.settings.dhat)
-        tangential = self._tangential(V, collisions, lag)
+        tangential, _ = self._tangential(V, collisions, lag)
         return -self._gradient(V, collisions, tangential, np.asfortranarray(u - reference)).reshape(-1, 3)
 
     def gap_opening(self, displacement: np.ndarray) -> dict[str, np.ndarray]:
