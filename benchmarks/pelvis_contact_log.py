@@ -2,7 +2,7 @@
 
     PYTHONPATH=src python benchmarks/pelvis_contact_log.py '{"out": "DIR", "mesh_size": 6, "needle_size": 3, "far_size": 18}'
 
-The argument: PelvisConfig fields as JSON (default: the CLI's defaults, `interfaces="paper"`, 100/200/300 N,
+The argument: PelvisConfig fields as JSON, and optionally "contact_tol" (the model's CONTACT_TOL for this run) (default: the CLI's defaults, `interfaces="paper"`, 100/200/300 N,
 no figures, no thickness cross-check). One JSON line per Newton iteration (relative residual, largest nodal
 correction and where, smallest barrier distance per interface, CPU s of the process), one CONVERGED line
 per increment, a SUMMARY at the end. With "out", OUT/solve_log.jsonl is the model's own per-increment log.
@@ -15,11 +15,14 @@ import felupe
 import numpy as np
 
 from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
+from needletissue.models.pelvis import model as pelvis_model
 from needletissue.fem.contact.item import FrictionalContact
 
 
 def main():
     kw = json.loads(sys.argv[1]) if len(sys.argv) > 1 else {}
+    if "contact_tol" in kw:
+        pelvis_model.CONTACT_TOL = float(kw.pop("contact_tol"))
     cfg = PelvisConfig(interfaces="paper", forces=[100.0, 200.0, 300.0], figures=False, crosscheck_thickness=False, **kw)
     newton = felupe.newtonraphson
     t0 = time.process_time()
