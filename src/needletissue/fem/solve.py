@@ -360,10 +360,10 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                    100/200/300 N of a 300 N force.
     solver       : "auto" (by free dofs), "pardiso", "scipy" or "amg" (PyAMG-preconditioned CG).
     items        : extra FElupe items (e.g. a contact item) assembled with the bodies.
-    initial_step : first increment of the load factor (default: the first requested factor; with
-                   extra `items` 1/20 of it: contact starts from the barrier's soft rest state, and
-                   with lag="step" friction lags one increment, so the first is frictionless; the
-                   needle model's contact run converges from 5 N in 7 iterations, docs/contact.md).
+    initial_step : first increment of the load factor (default: the first requested factor, with or
+                   without contact items: smoothed friction lets every increment creep up to eps_v
+                   where it sticks, so many small increments add slip a few large ones do not, and
+                   cost 3-4x the iterations; docs/contact.md, "Contact increments").
     min_step     : smallest increment after cut-backs (halving); below it ConvergenceError names the
                    load factor reached. max_step caps the increment (default: no cap).
     tol          : Newton tolerance on |residual of free dofs| / |reactions| (FElupe's norm).
@@ -410,8 +410,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     if not lams or any(b <= a for a, b in zip(lams, lams[1:])):
         raise InputError("load_factors", f"must be a non-empty strictly increasing list of numbers > 0, got {lams}")
     check_number("min_step", min_step, gt=0)
-    if initial_step is None:  # contact: the first increment has no friction yet (lagged), keep it small
-        initial_step = lams[0] / 20 if items else lams[0]
+    if initial_step is None:
+        initial_step = lams[0]
     step = check_number("initial_step", initial_step, gt=0)
     max_step = np.inf if max_step is None else check_number("max_step", max_step, gt=0)
     step = min(step, max_step)
