@@ -47,6 +47,7 @@ def main(argv=None):
     ap.add_argument("--save", help="directory: the converged state of every increment")
     ap.add_argument("--restart", help="a state saved by --save: continue from its load")
     ap.add_argument("--initial-step", type=float, help="first increment (load factor of the largest force)")
+    ap.add_argument("--max-step", type=float, help="largest increment (load factor): the increment study")
     a = ap.parse_args(argv)
 
     cfg = with_geometry(NeedleModelConfig(forces=tuple(float(f) for f in a.forces.split(",")), ritz=False),
@@ -104,6 +105,8 @@ def main(argv=None):
             kw["start"] = saved["load_factor"] * saved["fmax"] / fmax
         if a.initial_step:
             kw["initial_step"] = a.initial_step
+        if a.max_step:
+            kw["max_step"] = a.max_step
         return solve0(*args, **kw)
 
     nfem.solve = solve_logged

@@ -361,9 +361,10 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     solver       : "auto" (by free dofs), "pardiso", "scipy" or "amg" (PyAMG-preconditioned CG).
     items        : extra FElupe items (e.g. a contact item) assembled with the bodies.
     initial_step : first increment of the load factor (default: the first requested factor, with or
-                   without contact items: smoothed friction lets every increment creep up to eps_v
-                   where it sticks, so many small increments add slip a few large ones do not, and
-                   cost 3-4x the iterations; docs/contact.md, "Contact increments").
+                   without contact items: each increment of smoothed friction slips anew where it
+                   sticks, so the answer drifts with the number of increments, ~0.01 mm of needle per
+                   increment at eps_v = 0.01 mm, and small ones cost 3-4x the iterations where large
+                   ones converge; docs/contact.md, "Contact increments").
     min_step     : smallest increment after cut-backs (halving); below it ConvergenceError names the
                    load factor reached. max_step caps the increment (default: no cap).
     tol          : Newton tolerance on |residual of free dofs| / |reactions| (FElupe's norm).
