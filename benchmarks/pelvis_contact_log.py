@@ -2,8 +2,8 @@
 
     PYTHONPATH=src python benchmarks/pelvis_contact_log.py '{"out": "DIR", "mesh_size": 6, "needle_size": 3, "far_size": 18}'
 
-The argument: PelvisConfig fields as JSON, and optionally "contact_tol" (the model's CONTACT_TOL for this run) (default: the CLI's defaults, `interfaces="paper"`, 100/200/300 N,
-no figures, no thickness cross-check). One JSON line per Newton iteration (relative residual, largest nodal
+The argument: PelvisConfig fields as JSON (default: the CLI's defaults, `interfaces="paper"`, 100/200/300 N,
+no figures, no thickness cross-check), and optionally "contact_tol" (the model's CONTACT_TOL for this run). One JSON line per Newton iteration (relative residual, largest nodal
 correction and where, smallest barrier distance per interface, CPU s of the process), one CONVERGED line
 per increment, a SUMMARY at the end. With "out", OUT/solve_log.jsonl is the model's own per-increment log.
 """

@@ -12,7 +12,6 @@ from needletissue.materials.laws import InvariantPolynomial, Ogden
 from law_cases import LAWS
 
 
-
 def _random_F():
     """(3, 3, 4, 60): moderate random F, large stretches (0.3-3), near-singular-ish (det F ~ 0.003-0.06),
     large rotations, det F < 0. Eigenvalues of C distinct (AD's eigenvalue derivatives need that)."""

@@ -228,10 +228,10 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
         # the linear predictor with mixed tissue (at K = 10 MPa the displacement formulation's extrapolated
         # start diverges, docs/bench.md) and in contact runs (small increments that extrapolate well and
         # start with the contact loaded, docs/contact.md)
-        fe_results = solve(model, bcs, load_factors=[f / fmax for f in cfg.forces], solver=cfg.solver,
-                           items=extra, progress=cfg.progress,
+        factors = [f / fmax for f in cfg.forces]
+        fe_results = solve(model, bcs, load_factors=factors, solver=cfg.solver, items=extra, progress=cfg.progress,
                            predictor=cfg.formulation == "mixed" or bool(extra), log=log,
-                           initial_step=CONTACT_FIRST_INCREMENT * min(cfg.forces) / fmax if extra else None)
+                           initial_step=CONTACT_FIRST_INCREMENT * factors[0] if extra else None)
     t_solve = time.perf_counter() - t0 - t_mesh
 
     used = model.mesh                         # tetra10 when order=2
