@@ -7,7 +7,7 @@ defaults), so the three runs are one refinement family. Tissue is assigned per t
 geometric error, not only the discretisation of one fixed geometry.
 
     PYTHONPATH=src nice python benchmarks/pelvis_mesh_convergence.py [--sizes 4 3 2.25] \
-        [--out src/needletissue/data/pelvis_convergence.json]
+        [--out src/needletissue/data/pelvis_convergence.json] [--interfaces paper --out benchmarks/results/pelvis_convergence_contact.json]
 
 Each size runs in its own process (peak memory per size, a crash loses one size only). Needs ../shared/data.
 """
@@ -35,10 +35,14 @@ def run_one(size: float, forces, interfaces: str) -> dict:
                                         out=None))
     d = res.to_dict()
     ru = resource.getrusage(resource.RUSAGE_SELF)
-    return {"mesh_size_mm": size, "tetrahedra": d["mesh"]["tetrahedra"], "dofs": d["mesh"]["dofs"],
-            "wall_s": time.perf_counter() - t, "cpu_s": ru.ru_utime + ru.ru_stime,
-            "peak_rss_GiB": ru.ru_maxrss / 1024**2,
-            "results": [{k: r[k] for k in ("force_N", *KEYS, "newton_iterations")} for r in d["results"]]}
+    run = {"mesh_size_mm": size, "tetrahedra": d["mesh"]["tetrahedra"], "dofs": d["mesh"]["dofs"],
+           "wall_s": time.perf_counter() - t, "cpu_s": ru.ru_utime + ru.ru_stime,
+           "solve_wall_s": d["timing_s"]["solve"], "peak_rss_GiB": ru.ru_maxrss / 1024**2,
+           "results": [{k: r[k] for k in ("force_N", *KEYS, "newton_iterations")} for r in d["results"]]}
+    if d.get("contact"):  # per force: equilibrium, interpenetration, per interface gaps / slip / pressure
+        run["contact"] = [{k: x[k] for k in ("force_N", "equilibrium_error", "max_interpenetration_mm",
+                                             "max_gap_opening_mm", "interfaces")} for x in d["contact"]["per_force"]]
+    return run
 
 
 def fit(h: list, f: list) -> dict:
