@@ -48,6 +48,7 @@ def main(argv=None):
     ap.add_argument("--restart", help="a state saved by --save: continue from its load")
     ap.add_argument("--initial-step", type=float, help="first increment (load factor of the largest force)")
     ap.add_argument("--max-step", type=float, help="largest increment (load factor): the increment study")
+    ap.add_argument("--substeps", type=int, help="modified-Newton substeps per iteration (fem.solve substeps)")
     a = ap.parse_args(argv)
 
     cfg = with_geometry(NeedleModelConfig(forces=tuple(float(f) for f in a.forces.split(",")), ritz=False),
@@ -107,6 +108,8 @@ def main(argv=None):
             kw["initial_step"] = a.initial_step
         if a.max_step:
             kw["max_step"] = a.max_step
+        if a.substeps is not None:
+            kw["substeps"] = a.substeps
         return solve0(*args, **kw)
 
     nfem.solve = solve_logged

@@ -3,10 +3,12 @@
     PYTHONPATH=src python benchmarks/pelvis_contact_log.py '{"out": "DIR", "mesh_size": 6, "needle_size": 3, "far_size": 18}'
 
 The argument: PelvisConfig fields as JSON (default: the CLI's defaults, `interfaces="paper"`, 100/200/300 N,
-no figures, no thickness cross-check), and optionally "contact_tol" (the model's CONTACT_TOL for this run). One JSON line per Newton iteration (relative residual, largest nodal
+no figures, no thickness cross-check), and optionally "contact_tol" (the model's CONTACT_TOL for this run) and
+"substeps" (fem.solve's SUBSTEPS: modified-Newton substeps per iteration, 0 for none). One JSON line per Newton iteration (relative residual, largest nodal
 correction and where, smallest barrier distance per interface, CPU s of the process), one CONVERGED line
 per increment, a SUMMARY at the end. With "out", OUT/solve_log.jsonl is the model's own per-increment log.
 """
+import importlib
 import json
 import sys
 import time
@@ -23,6 +25,8 @@ def main():
     kw = json.loads(sys.argv[1]) if len(sys.argv) > 1 else {}
     if "contact_tol" in kw:
         pelvis_model.CONTACT_TOL = float(kw.pop("contact_tol"))
+    if "substeps" in kw:  # fem.solve's default number of modified-Newton substeps (0: none)
+        importlib.import_module("needletissue.fem.solve").SUBSTEPS = int(kw.pop("substeps"))
     cfg = PelvisConfig(interfaces="paper", forces=[100.0, 200.0, 300.0], figures=False, crosscheck_thickness=False, **kw)
     newton = felupe.newtonraphson
     t0 = time.process_time()

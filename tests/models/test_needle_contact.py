@@ -66,3 +66,29 @@ def test_paper_interfaces_reach_300_N_in_equilibrium_without_interpenetration():
         # the stall's signature: the muscle under the adipose squeezed the needle-muscle barrier to
         # 1.5e-4..2.4e-4 mm (0.002 dhat) and Newton cycled there (docs/contact.md); now > 0.01 dhat
         assert row["interfaces"]["needle-muscle"]["min_barrier_distance_mm"] > 0.01 * dhat
+
+
+@pytest.mark.slow
+def test_contact_substeps_same_answer_with_fewer_factorisations(monkeypatch):
+    """Modified-Newton substeps in contact runs (fem.solve's default since 2026-12-03): the coarse one-needle
+    model with the paper's interfaces, 30 N in one increment (the answer of smoothed friction depends on
+    the increments, docs/contact.md, so both runs take the same one), converges to the same deflection
+    (to the Newton tolerance: 1e-6 relative) in fewer Newton iterations (each a tangent and an LU)."""
+    import importlib
+
+    from needletissue.models.contact import NeedleContact
+    from needletissue.models.needle import NeedleModelConfig, model, run_needle_model, with_geometry
+
+    monkeypatch.setattr(model, "CONTACT_FIRST_INCREMENT", 1.0)
+    cfg = with_geometry(NeedleModelConfig(forces=(30.0,), ritz=False), needles=1,
+                        mesh_size=8.0, needle_mesh_size=2.5, far_mesh_size=30.0)
+    runs = {}
+    for substeps in (None, 0):
+        if substeps == 0:
+            monkeypatch.setattr(importlib.import_module("needletissue.fem.solve"), "SUBSTEPS", 0)
+        runs[substeps] = run_needle_model(cfg, **NeedleContact("paper").hooks()).results[0]
+    plain, sub = runs[0].fe, runs[None].fe
+    assert sub.newton_substeps > 0 and plain.newton_substeps == 0
+    assert sub.steps == plain.steps == 1 and sub.cutbacks == plain.cutbacks == 0
+    assert sub.newton_iterations < plain.newton_iterations
+    assert runs[None].max_needle_deformation_mm == pytest.approx(runs[0].max_needle_deformation_mm, rel=1e-6)

@@ -378,8 +378,9 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                    halve the step while det F <= 0 or the residual is non-finite, e.g. a contact
                    item's NaN for a step that passes a surface through another). Default: on when
                    extra `items` are given, off otherwise (bonded runs stay plain Newton).
-    substeps     : modified-Newton substeps per Newton iteration (default SUBSTEPS without extra
-                   `items` and line search, else 0): after the update x + dx, further corrections
+    substeps     : modified-Newton substeps per Newton iteration (default SUBSTEPS, also with contact
+                   items, whose steps CCD bounds; 0 with other extra `items` or a line search without
+                   contact): after the update x + dx, further corrections
                    -K^-1 r(x) with the same factorisation of K (one residual and one back-substitution
                    each, no tangent assembly, no factorisation), Anderson-mixed over the last ANDERSON,
                    while the first is <= SUBSTEP_START max |u|, none is 10x the smallest so far and
@@ -387,7 +388,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                    until |r| < tol. Only with a solver that keeps its factor (Pardiso); the convergence
                    test is unchanged, so the answer is the same to the tolerance (docs/bench.md, "Newton").
                    An increment that fails after substeps is tried once more without them before
-                   it is halved.
+                   it is halved (not with extra `items`: contact increments fail at the barrier, and
+                   the retry cost 25 more iterations, docs/contact.md).
 
     log          : a callable taking one dict per event as it happens (`SolveLog` writes them to a JSON-lines
                    file, so a long run says which load it reached while it runs and where it stopped):
@@ -441,10 +443,12 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     # the line search's admissibility test needs FElupe's items (det F per body)
     bonded = None if items or searching else _Bodies(all_items, bodies, loads.dof1, loads.dof0, model.ndof)
     newton = {"items": all_items} if bonded is None else {"fun": bonded.fun, "jac": bonded.jac, "solve": bonded.solve}
+    # contact items bound every step by CCD (a substep through a surface gives a NaN residual and ends them)
+    bounded = [i for i in items if hasattr(i, "step_bound")]
     if substeps is None:
-        substeps = 0 if items or searching else SUBSTEPS
+        substeps = SUBSTEPS if bounded or not (items or searching) else 0
     substeps = int(check_number("substeps", substeps, ge=0))
-    if substeps and searching:
+    if substeps and searching and not bounded:
         raise InputError("substeps", "modified-Newton substeps and the line search exclude each other: "
                                      "give substeps=0 or linesearch=False")
     sub = None
@@ -455,7 +459,6 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     if searching:
         # no Armijo test on |r|: a barrier's residual is no merit function (measured: it stalled the
         # needle model at load factor 0.005); reject only inverted and non-finite trials
-        bounded = [i for i in items if hasattr(i, "step_bound")]
         if bounded:  # contact: a CCD-bounded step first; a slope line search once Newton stalls
             from needletissue.fem.contact.item import CollisionFreeStep, StallLinesearch
 
@@ -537,7 +540,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                     emit("increment", load_factor=lam, increment=dl, iterations=int(res.iterations))
                     continue
                 # failed: restore the last converged state and halve the increment
-                retry = sub is not None and sub.enabled and sub.taken > taken0
+                # (contact: halved at once; the failures there are the barrier's, not the substeps')
+                retry = sub is not None and sub.enabled and sub.taken > taken0 and not items
                 if sub is not None:
                     sub.taken = taken0
                 for f, v in zip(field.fields, saved):
