@@ -8,7 +8,8 @@ The mesh is made once (gmsh, deterministic) and every run solves it from scratch
 - previous: the source of git revision REF (`git archive` into a temporary folder; its own defaults),
   only with --previous;
 - current: the defaults of this version;
-- *-mkl1: the same with MKL_NUM_THREADS=1 (Pardiso on one thread; FEBio was faster on one).
+- *-mkl1: the same with MKL_NUM_THREADS=1 (Pardiso on one thread; FEBio was faster on one);
+- *-mkl2: the same with MKL_NUM_THREADS=2 (Pardiso on both cores of the 2-core machine).
 The displacement fields must agree (max |du| / max |u| against the previous version is printed;
 <= 1e-6 required). Writes benchmarks/results/bench_fe_needle.json; --write-docs refreshes the table in
 docs/bench.md. Reference figures (issue 18, same mesh and loads, 2 cores): needletissue 43.3 s, FEBio 32.5 s.
@@ -33,6 +34,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 VARIANTS = ("previous", "previous-mkl1", "current", "current-mkl1")
+EXTRA_VARIANTS = ("previous-mkl2", "current-mkl2")  # on request (--variants)
 FORCES = (100.0, 200.0, 300.0)
 ISSUE_TABLE = [  # issue 18, measured side by side on the shared 2-core machine
     ("needletissue (issue 18)", 43.3, 33.8, 18, 824),
@@ -73,7 +75,8 @@ def run_one(variant: str, mesh_path: str, u_out: str) -> dict:
 
 
 def child(variant: str, mesh_path: str, u_out: str, previous: Path | None) -> dict:
-    env = {**os.environ, **({"MKL_NUM_THREADS": "1"} if variant.endswith("-mkl1") else {})}
+    threads = {"-mkl1": "1", "-mkl2": "2"}.get(variant[-5:])
+    env = {**os.environ, **({"MKL_NUM_THREADS": threads} if threads else {})}
     script = __file__
     if variant.startswith("previous"):  # that version's own run_one, on its own source
         env["PYTHONPATH"] = str(previous / "src")
@@ -98,7 +101,7 @@ def table(runs: list[dict]) -> str:
     rows = ["| | wall | CPU | linear solves | Newton iterations | peak memory |", "|---|---|---|---|---|---|"]
     for name, wall, lin, nit, mem in ISSUE_TABLE:
         rows.append(f"| {name} | {wall} s | | {lin} s | {nit} | {mem} MB |")
-    for v in VARIANTS:
+    for v in (*VARIANTS, *EXTRA_VARIANTS):
         rs = [r for r in runs if r["variant"] == v]
         if not rs:
             continue
@@ -126,6 +129,9 @@ def main():
         write_docs(table(json.loads((HERE / "results" / "bench_fe_needle.json").read_text())["runs"]))
         return
     variants = [v for v in a.variants.split(",") if a.previous or not v.startswith("previous")]
+    unknown = set(variants) - {*VARIANTS, *EXTRA_VARIANTS}
+    if unknown:
+        ap.error(f"--variants: unknown {sorted(unknown)}; known: {', '.join((*VARIANTS, *EXTRA_VARIANTS))}")
     with tempfile.TemporaryDirectory() as tmp:
         previous = export(a.previous, Path(tmp) / "previous") if a.previous else None
         msh = Path(tmp) / "needle1.msh"

@@ -134,6 +134,31 @@ def test_isolated_stages_run_side_by_side_and_results_stay_in_order(tmp_path):
     assert res.outcomes[2].status == "skipped"
 
 
+def _mkl_threads_seen(cfg, ctx):
+    import os
+
+    return StageResult({"mkl_threads": os.environ.get("MKL_NUM_THREADS")})
+
+
+@pytest.mark.parametrize("user", [None, "3"])
+def test_side_by_side_stages_share_the_cores_mkl_threads(tmp_path, monkeypatch, user):
+    """Two isolated stages on n cores get n // 2 MKL threads each (at least 1): more threads than cores wait for
+    each other; a user's MKL_NUM_THREADS wins; in-process stages are left alone."""
+    import os
+
+    if user is None:
+        monkeypatch.delenv("MKL_NUM_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("MKL_NUM_THREADS", user)
+    res = run_reproduce(load_config(), tmp_path / "res",
+                        [Stage("a", "A", _mkl_threads_seen, _always, isolated=True),
+                         Stage("b", "B", _mkl_threads_seen, _always, isolated=True),
+                         Stage("c", "C", _mkl_threads_seen, _always)], progress=False)
+    assert res.ok, [o.reason for o in res.outcomes]
+    share = user or str(max(1, len(os.sched_getaffinity(0)) // 2))
+    assert [o.result.data["mkl_threads"] for o in res.outcomes] == [share, share, user]
+
+
 def test_result_folder_and_files_follow_the_umask(tmp_path):
     import os
     import stat

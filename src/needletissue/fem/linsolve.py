@@ -369,26 +369,27 @@ def _mkl_rt_path():
         os.environ["PYPARDISO_MKL_RT"] = str(found[0].resolve())
 
 
-# Pardiso on one MKL thread up to this many free dofs (unless MKL_NUM_THREADS is set): on the shared
-# 2-core machine the one-needle model (37,677 dofs) took CPU 20.0 s with one thread against 24.2 s with
-# two, wall 40.3 vs 48.2 s (medians of 2, docs/bench.md); FEBio was faster on one thread too.
-PARDISO_ONE_THREAD_MAX_DOFS = 100_000
+# Pardiso's MKL threads (unless MKL_NUM_THREADS is set): None = MKL's own default, one per core. On an idle
+# 2-core machine two threads made the one-needle model 22.6 -> 16.9 s wall and the default `fe needle`
+# 44.0 -> 32.6 s (docs/bench.md, "Threads"); on a machine shared with other jobs one thread is faster
+# (MKL_NUM_THREADS=1). Processes that solve side by side take one each (report.pipeline).
+PARDISO_THREADS: int | None = None
 
 
-def thread_limits(name: str, ndof: int):
+def thread_limits(name: str):
     """Context for a solve: OpenBLAS on one thread (single_threaded_openblas), and MKL's Pardiso on
-    one thread for systems up to PARDISO_ONE_THREAD_MAX_DOFS free dofs unless MKL_NUM_THREADS is set."""
+    PARDISO_THREADS threads when that is set and MKL_NUM_THREADS is not."""
     import os
     from contextlib import ExitStack
 
     stack = ExitStack()
     stack.enter_context(single_threaded_openblas())
-    if name == "pardiso" and ndof <= PARDISO_ONE_THREAD_MAX_DOFS and "MKL_NUM_THREADS" not in os.environ:
+    if name == "pardiso" and PARDISO_THREADS and "MKL_NUM_THREADS" not in os.environ:
         try:
             from threadpoolctl import ThreadpoolController
         except ImportError:
             return stack
-        stack.enter_context(ThreadpoolController().select(internal_api="mkl").limit(limits=1))
+        stack.enter_context(ThreadpoolController().select(internal_api="mkl").limit(limits=PARDISO_THREADS))
     return stack
 
 

@@ -479,7 +479,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     norms: list[list[float]] = []
     out = []
     emit = _emitter(log, items, t0)
-    with bar if progress else nullcontext(), linsolve.thread_limits(name, len(loads.dof1)), closing(linear):
+    with bar if progress else nullcontext(), linsolve.thread_limits(name), closing(linear):
         for target in lams:
             while lam < target * (1 - 1e-12):
                 # equal sub-steps no larger than the allowed increment (no tiny remainders)

@@ -105,16 +105,28 @@ class Stage:
     isolated: bool = False
 
 
-def _start_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext"):
+def _start_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext", side_by_side: int = 1):
     """Start an isolated stage in its own process now; `_collect` waits for it. Isolated stages (the FE
     models) start together at the beginning and run beside the in-process stages: on two cores the needle
-    FE and the anatomical model, each mostly one thread, overlap."""
+    FE and the anatomical model overlap. `side_by_side` stages share the cores: each child's sparse solver
+    gets its share of MKL threads (unless MKL_NUM_THREADS is set): threads beyond the cores wait for each
+    other."""
     import multiprocessing as mp
+    import os
     from concurrent.futures import ProcessPoolExecutor
 
     ignore_sigpipe()   # a dead worker: BrokenProcessPool, not a dead caller
-    pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"))
+    threads = os.environ.get("MKL_NUM_THREADS") or str(max(1, len(os.sched_getaffinity(0)) // side_by_side))
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"),
+                               initializer=_mkl_threads, initargs=(threads,))
     return pool, pool.submit(_timed, stage.run, cfg, StageContext(ctx.run_dir, ctx.ct, ctx.labels))
+
+
+def _mkl_threads(threads: str):
+    """In an isolated stage's child, before MKL loads: its share of the cores."""
+    import os
+
+    os.environ["MKL_NUM_THREADS"] = threads
 
 
 def _collect(stage: Stage, started) -> tuple[StageResult, float]:
@@ -249,12 +261,12 @@ def _stages(cfg, out, tmp, stages, ct, labels, progress, t0, outcomes, write_rep
     ctx = StageContext(run_dir=tmp, ct=ct, labels=labels)
     enabled = {s.name: s.enabled(cfg, ctx) for s in stages}
     started = {}
+    isolated = [s for s in stages if s.isolated and enabled[s.name][0]]
     with _StageProgress(stages, progress) as bar:
         try:
-            for stage in stages:
-                if stage.isolated and enabled[stage.name][0]:
-                    started[stage.name] = _start_isolated(stage, cfg, ctx)
-                    bar.start(stage)
+            for stage in isolated:
+                started[stage.name] = _start_isolated(stage, cfg, ctx, side_by_side=len(isolated))
+                bar.start(stage)
             for stage in stages:
                 _run_stage(stage, cfg, ctx, enabled[stage.name], started.get(stage.name), bar, outcomes)
         except BaseException:  # interrupted (SIGINT/SIGTERM): stop the workers, do not wait for them
