@@ -194,30 +194,40 @@ def test_json_reports_clamp_motion_and_strength(cli_run):
     assert b["needle_yield_utilisation"] == pytest.approx(2 * a["needle_yield_utilisation"], rel=0.02)
 
 
-def _no_render(monkeypatch):
-    """write_outputs without the (slow, VTK) deformed-model picture: the render fails, a warning says so."""
+def _render_raising(monkeypatch, exc):
+    """The deformed-model render (a child process, VTK) replaced by one that raises `exc` when waited for."""
     import needletissue.models.render as render
 
-    def fail(*a):
-        raise RuntimeError("no picture in this test")
+    class Raising:
+        def __init__(self, *args):
+            pass
 
-    monkeypatch.setattr(render, "isolated", fail)
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc_info):
+            return False
+
+        def result(self):
+            raise exc
+
+    monkeypatch.setattr(render, "Isolated", Raising)
+
+
+def _no_render(monkeypatch):
+    """write_outputs without the (slow, VTK) deformed-model picture: the render fails, a warning says so."""
+    _render_raising(monkeypatch, RuntimeError("no picture in this test"))
 
 
 def test_outputs_stopped_midway_leave_the_folder_as_it_was(one_needle, tmp_path, monkeypatch):
     # SIGTERM/Ctrl-C while the picture rendered (the last step) left the VTUs, the .vtm pieces and the
     # .pvd of the run in --out without results.json: half a result folder
     from needletissue.models.needle import write_outputs
-    import needletissue.models.render as render
 
     out = tmp_path / "out"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
-
-    def interrupted(*a):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(render, "isolated", interrupted)
+    _render_raising(monkeypatch, KeyboardInterrupt())
     with pytest.raises(KeyboardInterrupt):
         write_outputs(one_needle, out)
     assert [p.name for p in out.iterdir()] == ["notes.txt"]

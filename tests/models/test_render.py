@@ -195,6 +195,29 @@ def test_isolated_stops_its_child_when_the_caller_is_interrupted(tmp_path):
     assert not late.exists()  # the child was stopped, not left to finish
 
 
+def test_isolated_job_runs_beside_the_caller_and_is_stopped_when_the_caller_fails(tmp_path):
+    # `fe needle` renders its picture while it writes the other files: the child works meanwhile, and a
+    # failure of the caller before it waits stops the child (no PNG appears after the command failed)
+    import time
+
+    from needletissue.models.render import Isolated
+
+    go, done, late = tmp_path / "go.txt", tmp_path / "done.txt", tmp_path / "late.txt"
+    wait_for_go = (f"import time, pathlib\nt = time.monotonic() + 60\nwhile not pathlib.Path({str(go)!r}).exists():\n"
+                   f"    assert time.monotonic() < t, 'never ran beside the caller'\n    time.sleep(0.02)\n"
+                   f"pathlib.Path({str(done)!r}).write_text('x')")
+    with Isolated(exec, wait_for_go) as job:
+        go.write_text("x")  # the caller's own work while the child runs; the child finishes only after it
+        job.result()
+    assert done.exists()
+    with pytest.raises(ValueError):
+        with Isolated(exec, f"import time, pathlib; time.sleep(3); pathlib.Path({str(late)!r}).write_text('x')"):
+            time.sleep(1)  # the child is started (spawn)
+            raise ValueError("the caller failed")
+    time.sleep(4)
+    assert not late.exists()
+
+
 def test_isolated_child_dies_with_a_killed_caller(tmp_path):
     # a `reproduce` stage worker killed while it rendered left its render child running on (an orphan)
     import signal

@@ -294,22 +294,40 @@ def render_vtu(vtu, png, scene: RenderScene) -> Path:
 
 def isolated(fn, *args):
     """Run fn(*args) in a fresh process: a crash in VTK's native code cannot take the caller down."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-    from concurrent.futures.process import BrokenProcessPool
+    with Isolated(fn, *args) as job:
+        return job.result()
 
-    ignore_sigpipe()   # a dead worker: BrokenProcessPool, not a dead caller
 
-    pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"), initializer=_worker_start)
-    try:
-        return pool.submit(fn, *args).result()
-    except BrokenProcessPool:
-        raise RuntimeError(f"{getattr(fn, '__name__', fn)} crashed (native code)") from None
-    except BaseException:  # SIGTERM / Ctrl-C: stop the child now; waiting let it finish and write its PNG
-        stop_workers(pool)  # into the output folder after the command had exited
-        raise
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+class Isolated:
+    """fn(*args) started now in a fresh process, so the caller works on meanwhile; `result()` waits for
+    it. As a context: leaving it by an exception (or SIGTERM / Ctrl-C) stops the child at once."""
+
+    def __init__(self, fn, *args):
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        ignore_sigpipe()   # a dead worker: BrokenProcessPool, not a dead caller
+        self.name = getattr(fn, "__name__", str(fn))
+        self.pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"), initializer=_worker_start)
+        self.future = self.pool.submit(fn, *args)
+
+    def result(self):
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            return self.future.result()
+        except BrokenProcessPool:
+            raise RuntimeError(f"{self.name} crashed (native code)") from None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        if kind is not None and not issubclass(kind, Exception) or not self.future.done():
+            # SIGTERM / Ctrl-C, or the caller failed before waiting: stop the child now (waiting let it
+            # finish and write its PNG into the output folder after the command had exited)
+            stop_workers(self.pool)
+        self.pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _worker_start():
