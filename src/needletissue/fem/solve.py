@@ -388,7 +388,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                    until |r| < tol. Only with a solver that keeps its factor (Pardiso); the convergence
                    test is unchanged, so the answer is the same to the tolerance (docs/bench.md, "Newton").
                    An increment that fails after substeps is tried once more without them before
-                   it is halved (not with extra `items`: contact increments fail at the barrier, and
+                   it is halved (not with contact items: contact increments fail at the barrier, and
                    the retry cost 25 more iterations, docs/contact.md).
 
     log          : a callable taking one dict per event as it happens (`SolveLog` writes them to a JSON-lines
@@ -541,7 +541,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                     continue
                 # failed: restore the last converged state and halve the increment
                 # (contact: halved at once; the failures there are the barrier's, not the substeps')
-                retry = sub is not None and sub.enabled and sub.taken > taken0 and not items
+                retry = sub is not None and sub.enabled and sub.taken > taken0 and not bounded
                 if sub is not None:
                     sub.taken = taken0
                 for f, v in zip(field.fields, saved):
