@@ -389,7 +389,7 @@ def _write_outputs(result: NeedleModelResult, out_dir: Path, with_mesh: bool) ->
     last = result.results[-1]
     last.fe.write_vtu(out_dir / names[last.force_N], frame=FRAME, force_N=last.force_N)
     # rendered from that VTU in a child process (a VTK crash costs the picture, not the run), beside the
-    # other files: its start-up and render overlap them (~2 s of the default run's wall)
+    # other files: its start-up and render overlap them
     with Isolated(render_vtu, out_dir / names[last.force_N], out_dir / "needle_deformed.png", scene(result)) as job:
         for r in result.results[:-1]:
             r.fe.write_vtu(out_dir / names[r.force_N], frame=FRAME, force_N=r.force_N)
