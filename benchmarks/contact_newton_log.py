@@ -49,6 +49,7 @@ def main(argv=None):
     ap.add_argument("--initial-step", type=float, help="first increment (load factor of the largest force)")
     ap.add_argument("--max-step", type=float, help="largest increment (load factor): the increment study")
     ap.add_argument("--substeps", type=int, help="modified-Newton substeps per iteration (fem.solve substeps)")
+    ap.add_argument("--no-predictor", action="store_true", help="each increment from the last converged state")
     a = ap.parse_args(argv)
 
     cfg = with_geometry(NeedleModelConfig(forces=tuple(float(f) for f in a.forces.split(",")), ritz=False),
@@ -110,6 +111,8 @@ def main(argv=None):
             kw["max_step"] = a.max_step
         if a.substeps is not None:
             kw["substeps"] = a.substeps
+        if a.no_predictor:
+            kw["predictor"] = False
         return solve0(*args, **kw)
 
     nfem.solve = solve_logged
