@@ -371,7 +371,7 @@ def _mkl_rt_path():
 
 # Pardiso's MKL threads (unless MKL_NUM_THREADS is set): None = MKL's own default, one per core. On an idle
 # 2-core machine two threads made the one-needle model 22.6 -> 16.9 s wall and the default `fe needle`
-# 44.0 -> 32.6 s (docs/bench.md, "Threads"); on a machine shared with other jobs one thread is faster
+# 41.4 / 44.7 -> 34.0 / 39.2 s (docs/bench.md, "Threads"); on a machine shared with other jobs one thread is faster
 # (MKL_NUM_THREADS=1). Processes that solve side by side take one each (report.pipeline).
 PARDISO_THREADS: int | None = None
 

@@ -323,7 +323,7 @@ class Isolated:
         return self
 
     def __exit__(self, kind, exc, tb):
-        if kind is not None and not issubclass(kind, Exception) or not self.future.done():
+        if (kind is not None and not issubclass(kind, Exception)) or not self.future.done():
             # SIGTERM / Ctrl-C, or the caller failed before waiting: stop the child now (waiting let it
             # finish and write its PNG into the output folder after the command had exited)
             stop_workers(self.pool)
