@@ -123,3 +123,24 @@ def test_pardiso_reanalyses_when_the_pattern_changes():
     np.testing.assert_allclose(B @ x, 1.0)
     assert s._fun.analyses == 3 and len(s._fun.pattern) == 1
     s.close()
+
+
+@pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
+def test_contact_solves_take_one_pardiso_thread(monkeypatch):
+    """Pardiso on two threads differs in the last bits from run to run; contact solves (reproducible=True)
+    run on one MKL thread unless the user set MKL_NUM_THREADS."""
+    from threadpoolctl import threadpool_info
+
+    linsolve.make("pardiso")  # loads MKL
+    monkeypatch.delenv("MKL_NUM_THREADS", raising=False)
+
+    def mkl_threads():
+        return [i["num_threads"] for i in threadpool_info() if i.get("internal_api") == "mkl"]
+
+    if not mkl_threads():
+        pytest.skip("MKL not visible to threadpoolctl")
+    with linsolve.thread_limits("pardiso", reproducible=True):
+        assert mkl_threads() == [1] * len(mkl_threads())
+    monkeypatch.setattr(linsolve, "PARDISO_THREADS", 2)
+    with linsolve.thread_limits("pardiso"):
+        assert mkl_threads() == [2] * len(mkl_threads())

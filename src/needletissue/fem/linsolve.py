@@ -376,20 +376,24 @@ def _mkl_rt_path():
 PARDISO_THREADS: int | None = None
 
 
-def thread_limits(name: str):
+def thread_limits(name: str, reproducible: bool = False):
     """Context for a solve: OpenBLAS on one thread (single_threaded_openblas), and MKL's Pardiso on
-    PARDISO_THREADS threads when that is set and MKL_NUM_THREADS is not."""
+    PARDISO_THREADS threads (one with `reproducible`) when MKL_NUM_THREADS is not set. Pardiso on two
+    threads differs from run to run in the last bits (the default `fe needle`'s 200 N deflection by 1e-14
+    between two runs, bit for bit equal on one thread): harmless for a bonded run, not for a contact run,
+    whose Newton path near a barrier follows the round-off (docs/contact.md)."""
     import os
     from contextlib import ExitStack
 
     stack = ExitStack()
     stack.enter_context(single_threaded_openblas())
-    if name == "pardiso" and PARDISO_THREADS and "MKL_NUM_THREADS" not in os.environ:
+    threads = 1 if reproducible else PARDISO_THREADS
+    if name == "pardiso" and threads and "MKL_NUM_THREADS" not in os.environ:
         try:
             from threadpoolctl import ThreadpoolController
         except ImportError:
             return stack
-        stack.enter_context(ThreadpoolController().select(internal_api="mkl").limit(limits=PARDISO_THREADS))
+        stack.enter_context(ThreadpoolController().select(internal_api="mkl").limit(limits=threads))
     return stack
 
 
