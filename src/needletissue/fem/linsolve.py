@@ -18,12 +18,16 @@ SOLVERS = ("auto", "pardiso", "scipy", "amg")
 # iteration (a bonded model's pattern is fixed after its first iteration). False: the previous behaviour (phase 13
 # every call), kept for the A/B benchmark (benchmarks/bench_fe_needle.py).
 REUSE_ANALYSIS = True
-# "auto": direct Pardiso up to this many free dofs (robust; AMG-CG is 1.5x faster at 69k dofs and 3x at
-# 186k dofs with 40 % less memory, docs/fem.md), PyAMG-CG above; SciPy only small and without Pardiso.
-AUTO_DIRECT_MAX_DOFS = 150_000
-# Quadratic (tetra10) models: AMG-CG needs far more iterations there. The anatomical model at 273,330 dofs
-# (tetra10, 100/200/300 N): Pardiso 426 s CPU, 4.96 GiB peak; AMG-CG 2,679 s CPU, 3.28 GiB; same answer to
-# 1e-5 (docs/pelvis_model.md, "Mesh convergence"). Pardiso's memory grows ~n^1 here: ~7 GiB at 400k.
+# "auto": direct Pardiso up to this many free dofs with linear tets, PyAMG-CG above; SciPy only small and
+# without Pardiso. With the tissue's K = 10 MPa (issue 16) AMG-CG needs 800-900 iterations: on the anatomical
+# model's first tangent (order 1) Pardiso took 3.0 s against 35.9 s at 65k dofs and 16.6 s against 134 s at
+# 198k (benchmarks/linear_solvers_pelvis.py; docs/fem.md "Linear solvers"), at 2.2x AMG's memory. The
+# paper-scale model (752,589 dofs) peaks at 12.5 GB with Pardiso, which this 24 GiB machine holds; the factor
+# grows ~n^1.26, so twice that size would not fit.
+AUTO_DIRECT_MAX_DOFS = 800_000
+# Quadratic (tetra10) models: the anatomical model at 273,330 dofs (100/200/300 N): Pardiso 426 s CPU,
+# 4.96 GiB peak; AMG-CG 2,679 s CPU, 3.28 GiB; same answer to 1e-5 (docs/pelvis_model.md, "Mesh
+# convergence"). Pardiso's memory grows ~n^1 here: ~7 GiB at 400k.
 AUTO_DIRECT_MAX_DOFS_QUADRATIC = 400_000
 AUTO_SCIPY_MAX_DOFS = 20_000
 
