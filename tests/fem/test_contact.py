@@ -442,3 +442,28 @@ def test_edge_edge_friction_tangent_includes_the_mollifiers_derivative():
     fd = (force(eps * d) - force(-eps * d)) / (2 * eps)
     assert np.linalg.norm(J @ d.ravel() - fd) > 1e-3 * np.linalg.norm(fd)  # ipctk's alone misses m's part
     assert np.linalg.norm((J + Jm) @ d.ravel() - fd) < 1e-6 * np.linalg.norm(fd)
+
+
+def test_nearly_parallel_filter_keeps_every_mollified_edge_pair():
+    """The vectorised pre-test of tangential_collisions keeps exactly the edge-edge collisions whose
+    mollifier ipctk computes below 1, at rest and deformed."""
+    import ipctk
+
+    from needletissue.fem.contact import item
+
+    rng = np.random.default_rng(0)
+    V = rng.normal(size=(400, 3))
+    E = rng.integers(0, 400, size=(300, 2))
+    E = E[E[:, 0] != E[:, 1]]
+    # nearly parallel copies of some edges, 0.01 mm away
+    V = np.vstack([V, V[:200] + 1e-3 * rng.normal(size=(200, 3)) + [0.0, 0.0, 0.01]])
+    E = np.vstack([E, E[E.max(1) < 200] + 400]).astype(np.int32)
+    cmesh = ipctk.CollisionMesh(V, E, np.zeros((0, 3), np.int32))
+    for X in (V, V + 2e-3 * rng.normal(size=V.shape)):
+        collisions = ipctk.NormalCollisions()
+        collisions.build(cmesh, X, 0.05)
+        ee = collisions.ee_collisions
+        kept = {(c.edge0_id, c.edge1_id) for c in item._nearly_parallel(ee, X, cmesh.edges)}
+        mollified = {(c.edge0_id, c.edge1_id) for c in ee if c.mollifier(c.dof(X, cmesh.edges, cmesh.faces)) < 1}
+        assert len(ee) > 500 and len(mollified) > 10
+        assert kept == mollified
