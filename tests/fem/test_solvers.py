@@ -127,9 +127,24 @@ def test_pardiso_reanalyses_when_the_pattern_changes():
 
 
 @pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
-def test_contact_solves_take_one_pardiso_thread(monkeypatch):
-    """Pardiso on two threads differs in the last bits from run to run; contact solves (reproducible=True)
-    run on one MKL thread unless the user set MKL_NUM_THREADS."""
+def test_mkl_reproducibility_is_on_unless_the_user_set_it():
+    """MKL_CBWR=AUTO before MKL loads (Pardiso on two threads: the same bits in every run); a user's own
+    MKL_CBWR wins (empty: off)."""
+    import os
+    import subprocess
+    import sys
+
+    code = "from needletissue.fem import linsolve; print(linsolve.mkl_reproducible())"
+    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
+    out = [subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True, text=True,
+                          check=True).stdout.split()[-1] for extra in ({}, {"MKL_CBWR": ""})]
+    assert out == ["True", "False"]
+
+
+@pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
+def test_contact_solves_keep_two_pardiso_threads_only_when_mkl_is_reproducible(monkeypatch):
+    """Contact solves (reproducible=True) run on PARDISO_THREADS with MKL's reproducibility on, on one MKL
+    thread without it; MKL_NUM_THREADS set by the user wins."""
     from threadpoolctl import threadpool_info
 
     linsolve.make("pardiso")  # loads MKL
@@ -140,8 +155,37 @@ def test_contact_solves_take_one_pardiso_thread(monkeypatch):
 
     if not mkl_threads():
         pytest.skip("MKL not visible to threadpoolctl")
+    monkeypatch.setattr(linsolve, "PARDISO_THREADS", 2)
+    assert linsolve.mkl_reproducible()
+    with linsolve.thread_limits("pardiso", reproducible=True):
+        assert mkl_threads() == [2] * len(mkl_threads())
+    monkeypatch.setattr(linsolve, "mkl_reproducible", lambda: False)
     with linsolve.thread_limits("pardiso", reproducible=True):
         assert mkl_threads() == [1] * len(mkl_threads())
-    monkeypatch.setattr(linsolve, "PARDISO_THREADS", 2)
     with linsolve.thread_limits("pardiso"):
         assert mkl_threads() == [2] * len(mkl_threads())
+
+
+@pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
+def test_pardiso_gets_one_thread_per_core_whatever_set_mkl_before(monkeypatch):
+    """The anatomical model's in-process gmsh mesh left MKL on one thread (its OpenMP runtime set to gmsh's
+    thread count): a solve sets MKL's threads itself, one per core by default."""
+    import os
+
+    from threadpoolctl import ThreadpoolController, threadpool_info
+
+    linsolve.make("pardiso")  # loads MKL
+    monkeypatch.delenv("MKL_NUM_THREADS", raising=False)
+    monkeypatch.setattr(linsolve, "PARDISO_THREADS", None)
+
+    def mkl_threads():
+        return [i["num_threads"] for i in threadpool_info() if i.get("internal_api") == "mkl"]
+
+    if not mkl_threads():
+        pytest.skip("MKL not visible to threadpoolctl")
+    limiter = ThreadpoolController().select(internal_api="mkl").limit(limits=1)  # what the mesher left
+    try:
+        with linsolve.thread_limits("pardiso"):
+            assert mkl_threads() == [len(os.sched_getaffinity(0))] * len(mkl_threads())
+    finally:
+        limiter.restore_original_limits()

@@ -193,7 +193,7 @@ class _Pardiso:
     def __init__(self, reuse: bool = True):
         import weakref
 
-        _mkl_rt_path()
+        _mkl_environment()
         from pypardiso import PyPardisoSolver
 
         self.reuse = reuse
@@ -355,11 +355,14 @@ def _union(pattern, M):
     return indptr, (keys % n).astype(M.indices.dtype)
 
 
-def _mkl_rt_path():
-    """Point pypardiso at MKL's runtime library of the installed `mkl` wheel (PYPARDISO_MKL_RT):
-    without it every PyPardisoSolver() globs the whole environment for it (0.6 s each, measured)."""
+def _mkl_environment():
+    """Before MKL loads: its conditional numerical reproducibility on (MKL_CBWR=AUTO unless set: Pardiso on
+    two threads gives the same bits in every run, docs/contact.md), and pypardiso pointed at MKL's runtime
+    library of the installed `mkl` wheel (PYPARDISO_MKL_RT): without it every PyPardisoSolver() globs the
+    whole environment for it (0.6 s each, measured)."""
     import os
 
+    os.environ.setdefault("MKL_CBWR", "AUTO")
     if os.environ.get("PYPARDISO_MKL_RT"):
         return
     try:
@@ -373,26 +376,40 @@ def _mkl_rt_path():
         os.environ["PYPARDISO_MKL_RT"] = str(found[0].resolve())
 
 
-# Pardiso's MKL threads (unless MKL_NUM_THREADS is set): None = MKL's own default, one per core. On an idle
+# Pardiso's MKL threads (unless MKL_NUM_THREADS is set): None = one per core (MKL's own default). On an idle
 # 2-core machine two threads made the one-needle model 22.6 -> 16.9 s wall and the default `fe needle`
 # 41.4 / 44.7 -> 34.0 / 39.2 s (docs/bench.md, "Threads"); on a machine shared with other jobs one thread is faster
 # (MKL_NUM_THREADS=1). Processes that solve side by side take one each (report.pipeline).
 PARDISO_THREADS: int | None = None
 
 
+def mkl_reproducible() -> bool:
+    """Whether MKL's conditional numerical reproducibility is on (MKL_CBWR other than BRANCH_OFF; loads MKL)."""
+    import ctypes
+    import os
+
+    _mkl_environment()
+    import pypardiso  # noqa: F401  (loads MKL's runtime library)
+
+    return ctypes.CDLL(os.environ["PYPARDISO_MKL_RT"]).MKL_CBWR_Get(1) != 1  # MKL_CBWR_BRANCH, BRANCH_OFF
+
+
 def thread_limits(name: str, reproducible: bool = False):
     """Context for a solve: OpenBLAS on one thread (single_threaded_openblas), and MKL's Pardiso on
-    PARDISO_THREADS threads (one with `reproducible`) when MKL_NUM_THREADS is not set. Pardiso on two
-    threads differs from run to run in the last bits (the default `fe needle`'s 200 N deflection by 1e-14
-    between two runs, bit for bit equal on one thread): harmless for a bonded run, not for a contact run,
-    whose Newton path near a barrier follows the round-off (docs/contact.md)."""
+    PARDISO_THREADS threads when MKL_NUM_THREADS is not set. `reproducible`: the same bits in every run,
+    which a contact run needs (its Newton path near a barrier follows the round-off, docs/contact.md):
+    Pardiso on two threads gives them with MKL's conditional numerical reproducibility (on by default,
+    `_mkl_environment`); with it switched off (MKL_CBWR set empty) such a run takes one thread."""
     import os
     from contextlib import ExitStack
 
     stack = ExitStack()
     stack.enter_context(single_threaded_openblas())
-    threads = 1 if reproducible else PARDISO_THREADS
-    if name == "pardiso" and threads and "MKL_NUM_THREADS" not in os.environ:
+    threads = 1 if reproducible and name == "pardiso" and not mkl_reproducible() else PARDISO_THREADS
+    # set even for MKL's default: gmsh run in the same process (the anatomical model's mesh) sets the shared
+    # OpenMP runtime to its own thread count, and MKL follows it (measured: one thread after the mesh)
+    threads = threads or len(os.sched_getaffinity(0))
+    if name == "pardiso" and "MKL_NUM_THREADS" not in os.environ:
         try:
             from threadpoolctl import ThreadpoolController
         except ImportError:

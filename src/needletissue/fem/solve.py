@@ -479,7 +479,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     norms: list[list[float]] = []
     out = []
     emit = _emitter(log, items, t0)
-    # contact runs on one thread, so that a run repeats bit for bit (linsolve.thread_limits)
+    # contact runs repeat bit for bit (MKL reproducible on two threads, else one: linsolve.thread_limits)
     with bar if progress else nullcontext(), linsolve.thread_limits(name, reproducible=bool(bounded)), closing(linear):
         for target in lams:
             while lam < target * (1 - 1e-12):
