@@ -127,18 +127,21 @@ def test_pardiso_reanalyses_when_the_pattern_changes():
 
 
 @pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
-def test_mkl_reproducibility_is_on_unless_the_user_set_it():
-    """MKL_CBWR=AUTO before MKL loads (Pardiso on two threads: the same bits in every run); a user's own
-    MKL_CBWR wins (empty: off)."""
+def test_mkl_reproducibility_only_on_request_before_mkl_loads():
+    """MKL_CBWR=AUTO when a contact run asks before MKL is loaded (Pardiso on two threads: the same bits in
+    every run); not by default (it slows the bonded solves), and not once MKL is loaded."""
     import os
     import subprocess
     import sys
 
-    code = "from needletissue.fem import linsolve; print(linsolve.mkl_reproducible())"
-    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
-    out = [subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True, text=True,
-                          check=True).stdout.split()[-1] for extra in ({}, {"MKL_CBWR": ""})]
-    assert out == ["True", "False"]
+    def run(code):
+        env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
+        return subprocess.run([sys.executable, "-c", "from needletissue.fem import linsolve; " + code], env=env,
+                              capture_output=True, text=True, check=True).stdout.split()[-1]
+
+    assert run("print(linsolve.mkl_reproducible())") == "False"
+    assert run("linsolve.request_reproducible_mkl(); print(linsolve.mkl_reproducible())") == "True"
+    assert run("linsolve.make('pardiso'); linsolve.request_reproducible_mkl(); print(linsolve.mkl_reproducible())") == "False"
 
 
 @pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
@@ -156,7 +159,7 @@ def test_contact_solves_keep_two_pardiso_threads_only_when_mkl_is_reproducible(m
     if not mkl_threads():
         pytest.skip("MKL not visible to threadpoolctl")
     monkeypatch.setattr(linsolve, "PARDISO_THREADS", 2)
-    assert linsolve.mkl_reproducible()
+    monkeypatch.setattr(linsolve, "mkl_reproducible", lambda: True)
     with linsolve.thread_limits("pardiso", reproducible=True):
         assert mkl_threads() == [2] * len(mkl_threads())
     monkeypatch.setattr(linsolve, "mkl_reproducible", lambda: False)

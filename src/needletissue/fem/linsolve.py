@@ -355,14 +355,30 @@ def _union(pattern, M):
     return indptr, (keys % n).astype(M.indices.dtype)
 
 
-def _mkl_environment():
-    """Before MKL loads: its conditional numerical reproducibility on (MKL_CBWR=AUTO unless set: Pardiso on
-    two threads gives the same bits in every run, docs/contact.md), and pypardiso pointed at MKL's runtime
-    library of the installed `mkl` wheel (PYPARDISO_MKL_RT): without it every PyPardisoSolver() globs the
-    whole environment for it (0.6 s each, measured)."""
+def request_reproducible_mkl():
+    """MKL's conditional numerical reproducibility for this process (MKL_CBWR=AUTO unless the user set
+    MKL_CBWR), if MKL is not loaded yet: Pardiso on two threads then gives the same bits in every run, which a
+    contact run needs (docs/contact.md). Not for every run: it made the bonded one-needle model's solves
+    10.2 -> 13.4 s (docs/bench.md). Once MKL is loaded the mode cannot change (mkl_cbwr_set fails)."""
     import os
 
-    os.environ.setdefault("MKL_CBWR", "AUTO")
+    if not _mkl_loaded():
+        os.environ.setdefault("MKL_CBWR", "AUTO")
+
+
+def _mkl_loaded() -> bool:
+    try:
+        with open("/proc/self/maps") as maps:
+            return "libmkl_rt" in maps.read()
+    except OSError:
+        return True
+
+
+def _mkl_environment():
+    """Point pypardiso at MKL's runtime library of the installed `mkl` wheel (PYPARDISO_MKL_RT): without it
+    every PyPardisoSolver() globs the whole environment for it (0.6 s each, measured)."""
+    import os
+
     if os.environ.get("PYPARDISO_MKL_RT"):
         return
     try:
@@ -384,7 +400,7 @@ PARDISO_THREADS: int | None = None
 
 
 def mkl_reproducible() -> bool:
-    """Whether MKL's conditional numerical reproducibility is on (MKL_CBWR other than BRANCH_OFF; loads MKL)."""
+    """Whether MKL's conditional numerical reproducibility is on (loads MKL)."""
     import ctypes
     import os
 
@@ -398,8 +414,8 @@ def thread_limits(name: str, reproducible: bool = False):
     """Context for a solve: OpenBLAS on one thread (single_threaded_openblas), and MKL's Pardiso on
     PARDISO_THREADS threads when MKL_NUM_THREADS is not set. `reproducible`: the same bits in every run,
     which a contact run needs (its Newton path near a barrier follows the round-off, docs/contact.md):
-    Pardiso on two threads gives them with MKL's conditional numerical reproducibility (on by default,
-    `_mkl_environment`); with it switched off (MKL_CBWR set empty) such a run takes one thread."""
+    Pardiso on two threads gives them with MKL's conditional numerical reproducibility (`request_reproducible_mkl`
+    before MKL loads); without it such a run takes one thread."""
     import os
     from contextlib import ExitStack
 

@@ -424,6 +424,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     t0 = time.perf_counter()
     loads = _Loads(model, bcs)
     name = linsolve.choose(solver, len(loads.dof1), model.order)
+    if any(hasattr(i, "step_bound") for i in items):  # contact: the same bits in every run
+        linsolve.request_reproducible_mkl()
     linear = linsolve.make(name, model.mesh.points, loads.dof1)
     bodies = list(model.bodies.values())
     all_items = [*bodies, *(ld for ld, _ in loads.loads), *items]
@@ -479,7 +481,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     norms: list[list[float]] = []
     out = []
     emit = _emitter(log, items, t0)
-    # contact runs repeat bit for bit (MKL reproducible on two threads, else one: linsolve.thread_limits)
+    # contact runs repeat bit for bit (MKL in its reproducible mode on two threads, else one: linsolve.thread_limits)
     with bar if progress else nullcontext(), linsolve.thread_limits(name, reproducible=bool(bounded)), closing(linear):
         for target in lams:
             while lam < target * (1 - 1e-12):
