@@ -193,7 +193,7 @@ class _Pardiso:
     def __init__(self, reuse: bool = True):
         import weakref
 
-        _mkl_environment()
+        _mkl_rt_path()
         from pypardiso import PyPardisoSolver
 
         self.reuse = reuse
@@ -374,7 +374,7 @@ def _mkl_loaded() -> bool:
         return True
 
 
-def _mkl_environment():
+def _mkl_rt_path():
     """Point pypardiso at MKL's runtime library of the installed `mkl` wheel (PYPARDISO_MKL_RT): without it
     every PyPardisoSolver() globs the whole environment for it (0.6 s each, measured)."""
     import os
@@ -404,7 +404,7 @@ def mkl_reproducible() -> bool:
     import ctypes
     import os
 
-    _mkl_environment()
+    _mkl_rt_path()
     import pypardiso  # noqa: F401  (loads MKL's runtime library)
 
     return ctypes.CDLL(os.environ["PYPARDISO_MKL_RT"]).MKL_CBWR_Get(1) != 1  # MKL_CBWR_BRANCH, BRANCH_OFF
