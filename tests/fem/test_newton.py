@@ -94,8 +94,8 @@ def test_substeps_same_answer_with_fewer_tangents():
 
 
 def test_bodies_tangent_is_felupes_free_block():
-    """fem.solve's direct assembly (the bodies' tangents straight into the upper triangle of the
-    free-free block, a fixed pattern) gives FElupe's summed, partitioned tangent to round-off, in a
+    """fem.solve's direct assembly (the bodies' element matrices straight into the upper triangle of the
+    free-free block, a fixed pattern, without FElupe's per-body sparsity patterns) gives FElupe's summed, partitioned tangent to round-off, in a
     deformed state of a mixed (P2/P0 tissue) three-region model, and its partitioned solve with a
     prescribed displacement (the K10 du0 term) gives FElupe's increment."""
     import felupe as fem
@@ -116,6 +116,8 @@ def test_bodies_tangent_is_felupes_free_block():
     f = ours.fun(x)
     np.testing.assert_allclose(f, fun_items(items, x), rtol=0, atol=1e-12 * np.abs(f).max())
     upper, mats = ours.jac(x)
+    from felupe.assembly._sparsity import _patterns
+    assert not any(_patterns.get(b.field[0].indices) for b in items)  # FElupe's int64 positions not kept
     K = jac_items(items, x).tocsr()
     K11 = K[loads.dof1][:, loads.dof1]
     ref = sp.triu(K11).toarray()

@@ -121,21 +121,35 @@ def _pressure_plugin(fem, mixed):
     return _Pressure()
 
 
+class _Values:
+    """Stands in for FElupe's sparsity pattern of a body's field while _Bodies assembles it: keeps the
+    integrated element matrices (a, i, b, k, c) instead of summing them into the body's own CSR matrix."""
+
+    values = None
+
+    def assemble(self, values):
+        self.values = values
+        return self
+
+    def tocsr(self):
+        return self
+
+
 class _Bodies:
     """Residual, tangent and linear solve for FElupe's newtonraphson when the items are the model's
-    bodies and point loads only (no contact): each body's tangent goes straight into the upper
-    triangle of the free-free block K11, whose CSR pattern is built once, instead of summing the bodies'
-    global matrices, partitioning the sum, testing it for symmetry and cutting out its triangle at
-    every iteration (0.4 s per iteration of the one-needle model, docs/bench.md). The bodies'
-    hyperelastic laws have symmetric tangents (second derivatives of an energy). One body's global
-    matrix is alive at a time (FElupe's copy in its results is dropped): ~130 MB less at the peak
-    of the one-needle model."""
+    bodies and point loads only (no contact): each body's element matrices go straight into the upper
+    triangle of the free-free block K11 (and into K10), whose CSR patterns are built once, through one
+    int32 slot per integrated value, instead of FElupe's per-body CSR matrix (an int64 position per
+    value, ~1.5 GB at paper scale), the sum of the bodies' global matrices, its partition, a symmetry test
+    and a cut-out triangle at every iteration (docs/bench.md). The bodies' hyperelastic laws have
+    symmetric tangents (second derivatives of an energy). One body's element matrices are alive at a
+    time (FElupe's copy in its results is dropped)."""
 
     def __init__(self, items, bodies, dof1, dof0, ndof):
         self.items, self.bodies = items, bodies
         self.dof1, self.dof0, self.n = dof1, dof0, ndof
-        self.indptrs = None  # each body's CSR indptr, to detect a changed pattern
-        self.where = None    # per body: each stored value's slot in K11's upper data (0: none), int32
+        self.slots = None    # per body: each integrated value's slot in K11's upper data (0: none), int32
+        self.slots10 = None  # per body: (the values that go into K10, their slots there)
 
     def fun(self, x):
         f = np.zeros(self.n)
@@ -147,73 +161,96 @@ class _Bodies:
             f[:r.shape[0]] += r.toarray().ravel()
         return f
 
-    def _matrix(self, body):
-        K = body.assemble.matrix()
-        # FElupe keeps the matrix and its element matrices (900 values a tet10, ~80 MB for the needle
-        # model) for the next call; dropped, one body's are alive at a time, for ~20 ms of page faults
-        # per tangent
+    @staticmethod
+    def _values(body) -> np.ndarray:
+        """The body's integrated element matrices at the state of its last residual, flat, as FElupe
+        would sum them (its sparsity pattern's value order); FElupe's own sparse assembly is skipped."""
+        from weakref import WeakKeyDictionary
+
+        from felupe.assembly._sparsity import _patterns
+
+        key = body.field[0].indices
+        patterns = _patterns.setdefault(key, WeakKeyDictionary())
+        own, keep = patterns.get(key), _Values()
+        patterns[key] = keep
+        try:
+            body.assemble.matrix()
+        finally:
+            if own is None:
+                del patterns[key]
+            else:
+                patterns[key] = own
+        # FElupe keeps its element matrices (900 values a tet10) for the next call; dropped, one body's
+        # are alive at a time, for ~20 ms of page faults per tangent
         r = body.results
         r.stiffness = r.stiffness_values = None
         if hasattr(r, "_stiffness_values"):
             r._stiffness_values = None
+        values = np.ascontiguousarray(keep.values).ravel()
         if body.assemble.multiplier is not None:
-            K = K * body.assemble.multiplier
-        return K
+            values = values * body.assemble.multiplier
+        return values
 
     def jac(self, x):
         """At the state of the last fun(x), as FElupe's own assembly: (upper triangle of K11, K10)."""
         import scipy.sparse as sp
 
-        if self.where is None:  # the first call builds the patterns from all bodies' matrices at once
-            mats = iter(self._build([self._matrix(b) for b in self.bodies]))
-        else:
-            mats = (self._matrix(b) for b in self.bodies)
+        if self.slots is None:
+            self._build()
         data = np.zeros(len(self.indices) + 1)
         data10 = np.zeros(self.k10.nnz)
-        for K, w, p, (sel, slot) in zip(mats, self.where, self.indptrs, self.where10):
-            if len(w) != K.nnz or not np.array_equal(K.indptr, p):  # not seen with FElupe's cached patterns
-                self.where = None
-                return self.jac(x)
-            data += np.bincount(w, weights=K.data, minlength=len(data))
-            data10 += np.bincount(slot, weights=K.data[sel], minlength=len(data10))
-            del K
+        for body, w, (sel, slot) in zip(self.bodies, self.slots, self.slots10):
+            values = self._values(body)
+            if values.size != w.size:
+                raise RuntimeError(f"fem.solve: {values.size} element-matrix values, the pattern has {w.size}")
+            data += np.bincount(w, weights=values, minlength=len(data))
+            if len(sel):
+                data10 += np.bincount(slot, weights=values[sel], minlength=len(data10))
+            del values
         upper = sp.csr_matrix((data[1:], self.indices, self.indptr), shape=(len(self.dof1),) * 2)
         upper.has_sorted_indices = True
         return upper, sp.csr_matrix((data10, self.k10.indices, self.k10.indptr), shape=self.k10.shape)
 
-    def _build(self, mats):
-        """The patterns of K11's upper triangle and of K10 from the bodies' matrices, and where each
-        body's stored values go in them."""
+    def _build(self):
+        """The patterns of K11's upper triangle and of K10 from the bodies' sparsity patterns (FElupe's,
+        built here and dropped), and the slot of each integrated value of each body in them."""
         import scipy.sparse as sp
+        from felupe.assembly._sparsity import SparsityPattern
 
+        pats = [SparsityPattern(b.field[0], b.field[0]) for b in self.bodies]
         n1, n0 = len(self.dof1), len(self.dof0)
-        union = sum(sp.csr_matrix((np.ones(K.nnz), K.indices, K.indptr), shape=(self.n, self.n)) for K in mats)
+        union = sum(sp.csr_matrix((np.ones(p.nnz), p.indices, p.indptr), shape=(self.n, self.n)) for p in pats)
         upper = sp.triu(union[self.dof1][:, self.dof1], format="csr")  # CSR order: sorted row * n1 + col
         upper.sort_indices()
         k10 = union[self.dof1][:, self.dof0].tocsr()
         k10.sort_indices()
         del union
         self.indptr, self.indices = upper.indptr.astype(np.int32), upper.indices.astype(np.int32)
-        slots = np.repeat(np.arange(n1, dtype=np.int64), np.diff(upper.indptr)) * n1 + upper.indices
-        slots10 = np.repeat(np.arange(n1, dtype=np.int64), np.diff(k10.indptr)) * n0 + k10.indices
+        keys = np.repeat(np.arange(n1, dtype=np.int64), np.diff(upper.indptr)) * n1 + upper.indices
+        keys10 = np.repeat(np.arange(n1, dtype=np.int64), np.diff(k10.indptr)) * n0 + k10.indices
         self.k10 = k10
         del upper
         free = np.full(self.n, -1, np.int64)
         free[self.dof1] = np.arange(n1)
         fixed = np.full(self.n, -1, np.int64)
         fixed[self.dof0] = np.arange(n0)
-        self.where, self.where10 = [], []
-        for K in mats:
-            rows = np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))
-            r, c, c0 = free[rows], free[K.indices], fixed[K.indices]
+        self.slots, self.slots10 = [], []
+        while pats:
+            p = pats.pop(0)
+            rows = np.repeat(np.arange(self.n), np.diff(p.indptr))
+            r, c, c0 = free[rows], free[p.indices], fixed[p.indices]
             keep = (r >= 0) & (c >= r)
-            w = np.zeros(K.nnz, np.int32)  # slot 0 collects the values outside K11's upper triangle
-            w[keep] = np.searchsorted(slots, r[keep] * n1 + c[keep]) + 1
-            self.where.append(w)
-            sel = np.flatnonzero((r >= 0) & (c0 >= 0))
-            self.where10.append((sel, np.searchsorted(slots10, r[sel] * n0 + c0[sel])))
-        self.indptrs = [K.indptr.copy() for K in mats]
-        return mats
+            w = np.zeros(p.nnz, np.int32)  # slot 0 collects the values outside K11's upper triangle
+            w[keep] = np.searchsorted(keys, r[keep] * n1 + c[keep]) + 1
+            w10 = np.full(p.nnz, -1, np.int64)
+            sel = (r >= 0) & (c0 >= 0)
+            w10[sel] = np.searchsorted(keys10, r[sel] * n0 + c0[sel])
+            del rows, r, c, c0, keep, sel
+            self.slots.append(w[p.position])
+            v10 = w10[p.position]
+            sel = np.flatnonzero(v10 >= 0)
+            self.slots10.append((sel, v10[sel]))
+            del p, w, w10, v10
 
     def solve(self, A, b, x, dof1, dof0, ext0, solver):
         """FElupe's partitioned solve, K11 du1 = b1 - K10 du0, with A = (upper triangle of K11, K10)."""
