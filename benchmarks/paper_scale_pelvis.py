@@ -18,6 +18,7 @@ import json
 import resource
 import time
 
+from needletissue.fem.linsolve import SOLVERS
 from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
 if __name__ == "__main__":
@@ -26,7 +27,7 @@ if __name__ == "__main__":
     ap.add_argument("--force", type=float, action="append", help="reduction force, N (repeat; default 300)")
     ap.add_argument("--mesh-size", type=float, default=2.45, help="tissue element size, mm")
     ap.add_argument("--needle-size", type=float, default=1.0, help="needle element size, mm")
-    ap.add_argument("--solver", default="auto", help="linear solver: auto, pardiso, amg (fem.linsolve)")
+    ap.add_argument("--solver", default="auto", choices=SOLVERS, help="linear solver (fem.linsolve)")
     a = ap.parse_args()
     cfg = PelvisConfig(forces=a.force or [300.0], order=1, needle_size=a.needle_size, mesh_size=a.mesh_size,
                        far_size=a.mesh_size, out=a.out, figures=False,
