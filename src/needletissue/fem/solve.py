@@ -180,12 +180,14 @@ class _Bodies:
                 del patterns[key]
             else:
                 patterns[key] = own
-        # FElupe keeps its element matrices (900 values a tet10) for the next call; dropped, one body's
-        # are alive at a time, for ~20 ms of page faults per tangent
+        # FElupe keeps its element matrices (900 values a tet10) and the material's tangent (81 values a
+        # quadrature point: 0.9 GB at paper scale) for the next call; dropped, one body's are alive at a
+        # time, for ~20 ms of page faults per tangent
         r = body.results
-        r.stiffness = r.stiffness_values = None
-        if hasattr(r, "_stiffness_values"):
-            r._stiffness_values = None
+        r.stiffness = r.stiffness_values = r.elasticity = None
+        for name in ("_stiffness_values", "hessian"):
+            if hasattr(r, name):
+                setattr(r, name, None)
         values = np.ascontiguousarray(keep.values).ravel()
         if body.assemble.multiplier is not None:
             values = values * body.assemble.multiplier
