@@ -97,36 +97,3 @@ def test_pinch_points_stay_tied():
     assert set(itf.nodes_a.tolist()) == set(interface.tolist()) - set(pinch.tolist())
     s = ContactSurface.build(split.points, [itf], {"a-b": 0.3}, gap=GAP)
     assert _rest_distances(split.points, s).min() >= 0.9 * GAP
-
-
-def test_min_norm_point_is_exact_where_it_is_known_and_never_longer_than_slsqp():
-    """The shortest offset that clears every face plane by the gap: gap n for one face, gap (e1 + e2) and
-    gap (1, 1, 1) at a staircase's edge and corner, none between opposite faces (a pinch point); for
-    random corners it satisfies every constraint, its multipliers are >= 0 (KKT), and SciPy's SLSQP
-    (what it replaced) finds nothing shorter."""
-    from scipy.optimize import minimize
-
-    from needletissue.fem.contact.mesh import _min_norm_points
-
-    g = 0.095
-    e = np.eye(3)
-    x = _min_norm_points(np.array([e[:1], [e[2]]]), g)
-    np.testing.assert_allclose(x, [[g, 0, 0], [0, 0, g]], atol=1e-15)
-    np.testing.assert_allclose(_min_norm_points(np.array([e[:2]]), g), [[g, g, 0]], atol=1e-15)
-    np.testing.assert_allclose(_min_norm_points(np.array([e]), g), [[g, g, g]], atol=1e-15)
-    assert np.all(np.isinf(_min_norm_points(np.array([[e[0], -e[0]]]), g)))
-    rng = np.random.default_rng(7)
-    for k in (2, 3, 4, 6):
-        N = rng.normal(size=(40, k, 3)) * 0.6 + [0, 0, 1]  # normals around +z: a feasible corner
-        N /= np.linalg.norm(N, axis=2, keepdims=True)
-        X = _min_norm_points(N, g)
-        for n, x in zip(N, X):
-            assert (n @ x).min() >= g * (1 - 1e-9)
-            active = np.abs(n @ x - g) <= 1e-9 * g
-            lam = np.linalg.lstsq(n[active].T, 2 * x, rcond=None)[0]  # grad |x|^2 = N_active^T lam
-            np.testing.assert_allclose(n[active].T @ lam, 2 * x, atol=1e-9 * g)
-            assert lam.min() >= -1e-9
-            r = minimize(lambda y: y @ y, n.mean(axis=0) * 2 * g, jac=lambda y: 2 * y, method="SLSQP",
-                         constraints=[{"type": "ineq", "fun": lambda y: n @ y - g, "jac": lambda y: n}])
-            if r.success and (n @ r.x).min() >= g * (1 - 1e-9):
-                assert x @ x <= r.x @ r.x * (1 + 1e-12)

@@ -293,64 +293,14 @@ def virtual_gap_offsets(points, tri_a, nodes, gap: float):
     rest barrier distances of 1e-5 mm, where the barrier is 1e2-1e4 x stiffer (docs/contact.md).
     Also returns the mask of pinch nodes: no offset up to GAP_CAP x gap separates them (there the
     vertex normal is kept); split_interfaces leaves them tied."""
+    from scipy.optimize import minimize
+
     tri_a = np.asarray(tri_a)
     nodes = np.asarray(nodes, dtype=int)
     out = np.zeros((len(nodes), 3))
     bad = np.zeros(len(nodes), bool)
     if len(tri_a) == 0 or len(nodes) == 0:
         return out, bad
-    fn = np.cross(points[tri_a[:, 1]] - points[tri_a[:, 0]], points[tri_a[:, 2]] - points[tri_a[:, 0]])
-    unit = fn / np.linalg.norm(fn, axis=1, keepdims=True)
-    flat = tri_a.ravel()
-    order = np.argsort(flat, kind="stable")
-    ids, start = np.unique(flat[order], return_index=True)
-    stop = np.append(start[1:], len(order))
-    where = np.minimum(np.searchsorted(ids, nodes), len(ids) - 1)
-    corners = {}  # number of distinct face normals -> (node indices, their normals)
-    for i, w in enumerate(where):
-        if ids[w] != nodes[i]:
-            continue
-        f = order[start[w]:stop[w]] // 3
-        N, a = unit[f], fn[f].sum(axis=0)
-        o = gap * a / max(np.linalg.norm(a), 1e-300)
-        out[i] = o
-        if (N @ o).min() >= gap * (1 - 1e-3):
-            continue
-        N = np.unique(np.round(N, 9), axis=0)
-        corners.setdefault(len(N), ([], []))[0].append(i)
-        corners[len(N)][1].append(N)
-    for idx, Ns in corners.values():
-        x = _min_norm_points(np.array(Ns), gap)
-        ok = np.linalg.norm(x, axis=1) <= GAP_CAP * gap  # inf where nothing is feasible
-        out[np.array(idx)[ok]] = x[ok]
-        bad[np.array(idx)[~ok]] = True
-    return out, bad
-
-
-def _min_norm_points(N, gap: float) -> np.ndarray:
-    """argmin |x| subject to N x >= gap for each of n nodes (N: (n, k, 3) unit normals), inf where no x
-    satisfies them. Exact: the optimum has at most three linearly independent active constraints, so it is
-    the shortest feasible candidate x = N_S^T (N_S N_S^T)^-1 gap 1 over the subsets S of one to three rows
-    (every feasible point is at least as long as the optimum, which is one of them); all nodes with k
-    normals at once, where SciPy's SLSQP took a millisecond a node and stopped at its tolerance."""
-    from itertools import combinations
-
-    n, k = N.shape[:2]
-    best, length = np.full((n, 3), np.inf), np.full(n, np.inf)
-    for size in range(1, min(k, 3) + 1):
-        S = np.array(list(combinations(range(k), size)))
-        A = N[:, S]                                         # (n, m, size, 3)
-        G = np.matmul(A, np.swapaxes(A, -1, -2))            # Gram matrices of the subsets
-        independent = np.abs(np.linalg.det(G)) > 1e-10
-        G[~independent] = np.eye(size)                      # placeholders, discarded below
-        lam = np.linalg.solve(G, np.full((*G.shape[:2], size, 1), gap))[..., 0]
-        X = np.einsum("nms,nmsj->nmj", lam, A)
-        feasible = independent & (np.einsum("nmj,nkj->nmk", X, N).min(axis=2) >= gap * (1 - 1e-9))
-        sq = np.where(feasible, np.einsum("nmj,nmj->nm", X, X), np.inf)
-        j = np.argmin(sq, axis=1)
-        shorter = sq[np.arange(n), j] < length
-        best[shorter], length[shorter] = X[np.arange(n), j][shorter], sq[np.arange(n), j][shorter]
-    return best
     fn = np.cross(points[tri_a[:, 1]] - points[tri_a[:, 0]], points[tri_a[:, 2]] - points[tri_a[:, 0]])
     unit = fn / np.linalg.norm(fn, axis=1, keepdims=True)
     flat = tri_a.ravel()
