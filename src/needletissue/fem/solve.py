@@ -228,8 +228,7 @@ class _Bodies:
         k10.sort_indices()
         del union
         self.indptr, self.indices = upper.indptr.astype(np.int32), upper.indices.astype(np.int32)
-        keys = np.repeat(np.arange(n1, dtype=np.int64), np.diff(upper.indptr)) * n1 + upper.indices
-        keys10 = np.repeat(np.arange(n1, dtype=np.int64), np.diff(k10.indptr)) * n0 + k10.indices
+        keys, keys10 = linsolve._keys(upper.indptr, upper.indices, n1), linsolve._keys(k10.indptr, k10.indices, n0)
         self.k10 = k10
         del upper
         free = np.full(self.n, -1, np.int64)
