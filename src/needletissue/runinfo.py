@@ -23,7 +23,7 @@ from needletissue.errors import InputError
 _PACKAGES = (
     "numpy", "scipy", "felupe", "tensortrax", "gmsh", "meshio", "pyvista", "vtk", "SimpleITK", "nibabel",
     "pydicom", "scikit-image", "matplotlib", "dask", "distributed", "pydantic", "pandas", "pyarrow",
-    "pyamg", "pypardiso", "mkl", "ipctk", "tetgen", "numba", "llvmlite", "threadpoolctl", "tomli_w",
+    "pyamg", "pypardiso", "mkl", "pymetis", "ipctk", "tetgen", "numba", "llvmlite", "threadpoolctl", "tomli_w",
     "typer", "rich",
 )
 

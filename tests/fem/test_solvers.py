@@ -127,6 +127,38 @@ def test_pardiso_reanalyses_when_the_pattern_changes():
 
 
 @pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
+def test_metis_ordering_is_a_permutation_that_pardiso_uses_for_the_same_solution(monkeypatch):
+    """METIS 5's nested dissection (linsolve.ORDERING = "metis") reorders the Cholesky: a permutation of
+    the rows, handed to Pardiso (iparm 5 = 1), which then solves the tetra10 stiffness to the same x as
+    with its own METIS to round-off and fills no more of the factor."""
+    import scipy.sparse as sp
+
+    mesh = TaggedMesh.box((30, 4, 4), (12, 3, 3), origin=(0, -2, -2), region="needle")
+    K = FEModel(mesh, {"needle": "needle"}, order=2).bodies["needle"].assemble.matrix().tocsr()
+    fixed = np.flatnonzero(np.isclose(mesh.points[:, 0], 0.0))  # the x = 0 face clamped: positive definite
+    free = np.setdiff1d(np.arange(K.shape[0]), (3 * fixed[:, None] + np.arange(3)).ravel())
+    upper = sp.triu(K[free][:, free], format="csr")
+    upper.sort_indices()
+    perm = linsolve.nested_dissection(upper)
+    assert perm.dtype == np.int32 and np.array_equal(np.sort(perm), np.arange(upper.shape[0]))
+    assert linsolve.nested_dissection(sp.identity(5, format="csr")) is None  # nothing to order
+    b = np.random.default_rng(1).normal(size=upper.shape[0])
+    x, fill = {}, {}
+    for ordering in ("mkl", "metis"):
+        monkeypatch.setattr(linsolve, "ORDERING", ordering)
+        s = linsolve.make("pardiso")
+        x[ordering] = s(upper, b, upper=True)
+        ps = s._fun.solvers[2]
+        assert ps.iparm[4] == (1 if ordering == "metis" else 0)
+        fill[ordering] = ps.iparm[17]
+        s.close()
+    A = upper + sp.triu(upper, 1).T
+    assert np.linalg.norm(A @ x["metis"] - b) < 1e-10 * np.linalg.norm(b)
+    np.testing.assert_allclose(x["metis"], x["mkl"], rtol=0, atol=1e-9 * np.abs(x["mkl"]).max())
+    assert 0 < fill["metis"] <= fill["mkl"]
+
+
+@pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
 def test_mkl_reproducibility_only_on_request_before_mkl_loads():
     """MKL_CBWR=AUTO when a contact run asks before MKL is loaded (Pardiso on two threads: the same bits in
     every run); not by default (it slows the bonded solves), and not once MKL is loaded."""
