@@ -171,7 +171,7 @@ def make(name: str, points: np.ndarray | None = None, dof1: np.ndarray | None = 
 # 2 = 2), as LDL^T and LU (contact) always do.
 # On the default `fe needle` tangent (72,348 dofs) Pardiso's own gives 40.5 M factor nonzeros and 49.8 GFlop
 # per Cholesky, METIS 5's 37.1 M and 39.3 GFlop: factorisation 1.9 -> 1.3 s on two threads, analysis
-# 0.8 -> 0.3 s (plus ~1 s of ordering, once per pattern) (docs/bench.md, "Levers").
+# 0.8 -> 0.3 s (plus ~1 s of ordering, once per pattern) (docs/bench.md, "Pardiso's ordering: METIS 5").
 ORDERING = "metis"
 
 
