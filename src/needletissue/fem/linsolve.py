@@ -22,8 +22,8 @@ REUSE_ANALYSIS = True
 # without Pardiso. With the tissue's K = 10 MPa (issue 16) AMG-CG needs 800-900 iterations: on the anatomical
 # model's first tangent (order 1) Pardiso took 3.0 s against 35.9 s at 65k dofs and 16.6 s against 134 s at
 # 198k (benchmarks/linear_solvers_pelvis.py; docs/fem.md "Linear solvers"), at 2.2x AMG's memory. The
-# paper-scale model (752,589 dofs) peaks at 13.0 GiB with Pardiso, which this 24 GiB machine holds; the factor
-# grows ~n^1.26, so twice that size would not fit.
+# paper-scale model (752,010 dofs) peaks at 10.7 GiB with Pardiso (METIS 5's ordering), which this 24 GiB
+# machine holds; the factor grows ~n^1.26, so twice that size would not fit.
 AUTO_DIRECT_MAX_DOFS = 800_000
 # Quadratic (tetra10) models: the anatomical model at 273,330 dofs (100/200/300 N): Pardiso 426 s CPU,
 # 4.96 GiB peak; AMG-CG 2,679 s CPU, 3.28 GiB; same answer to 1e-5 (docs/pelvis_model.md, "Mesh
