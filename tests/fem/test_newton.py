@@ -162,10 +162,14 @@ def test_threaded_bodies_give_the_same_bits_and_stop_on_a_failing_body():
     assert np.abs(f1).max() > 0 and u1.nnz > 0 and three.pool is not None
     assert np.array_equal(f1, f3) and np.array_equal(u1.data, u3.data) and np.array_equal(k1.data, k3.data)
     assert not any(_patterns.get(b.field[0].indices) for b in items)
+    with np.errstate(over="raise", invalid="ignore"):  # the caller's NumPy error state reaches the threads
+        seen = list(three._ordered(lambda _: np.geterr(), range(4)))
+    assert all(e["over"] == "raise" and e["invalid"] == "ignore" for e in seen)
     three.close()
     assert three.pool is None and not any(t.name.startswith("needletissue-assembly") for t in threading.enumerate())
 
-    three.slots[2] = three.slots[2][:-1]  # one body's values no longer fit its pattern
+    used, local = three.slots[2]
+    three.slots[2] = (used, local[:-1])  # one body's values no longer fit its pattern
     with pytest.raises(RuntimeError, match="element-matrix values"):
         three.jac(x)
     three.close()

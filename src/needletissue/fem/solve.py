@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from contextlib import closing, nullcontext
 
@@ -151,26 +152,28 @@ class _Values:
         return self
 
 
+_PATTERNS_LOCK = threading.Lock()  # FElupe's sparsity-pattern cache (module-level), swapped per body in _Bodies
+
+
 class _Bodies:
     """Residual, tangent and linear solve for FElupe's newtonraphson when the items are the model's
     bodies and point loads only (no contact): each body's element matrices go straight into the upper
     triangle of the free-free block K11 (and into K10), whose CSR patterns are built once, through one
-    int32 slot per integrated value, instead of FElupe's per-body CSR matrix (an int64 position per
+    int32 index per integrated value into the body's own slots of K11, instead of FElupe's per-body CSR matrix (an int64 position per
     value, ~1.5 GB at paper scale), the sum of the bodies' global matrices, its partition, a symmetry test
     and a cut-out triangle at every iteration (docs/bench.md). The bodies' hyperelastic laws have
     symmetric tangents (second derivatives of an energy). Bodies are assembled on `threads` threads,
     at most one body's element matrices alive per thread (FElupe's copy in its results is dropped)."""
 
     def __init__(self, items, bodies, dof1, dof0, ndof, threads: int = 1):
-        import threading
-
         self.items, self.bodies = items, bodies
         self.dof1, self.dof0, self.n = dof1, dof0, ndof
-        self.slots = None    # per body: each integrated value's slot in K11's upper data (0: none), int32
+        self.slots = None    # per body: (the K11 upper-data slots it touches (0: none), each value's index among them)
         self.slots10 = None  # per body: (the values that go into K10, their slots there)
-        self.threads = max(1, min(int(threads), len(items)))
+        # the bodies' own fields (FElupe's pattern cache is swapped per field in _values): else one thread
+        own = len({id(b.field[0].indices) for b in bodies}) == len(bodies)
+        self.threads = max(1, min(int(threads), len(bodies))) if own else 1
         self.pool = None
-        self.lock = threading.Lock()  # FElupe's pattern cache, swapped per body in _values
 
     def close(self):
         if self.pool is not None:
@@ -178,22 +181,21 @@ class _Bodies:
             self.pool = None
 
     def _ordered(self, fun, items):
-        """fun(item) for each item, yielded in the items' order; on the threads, at most one in flight
-        per thread (a body's element matrices are ~1 GB at paper scale)."""
+        """fun(item) for each item on the threads (one body's element matrices per thread: ~1 GB at paper
+        scale), yielded in the items' order: the results of bodies done early wait for their turn, so they
+        are kept small (a body's own slots, not the whole K11)."""
         if self.threads == 1:
             yield from map(fun, items)
             return
+        import contextvars
         from collections import deque
         from concurrent.futures import ThreadPoolExecutor
 
         if self.pool is None:
             self.pool = ThreadPoolExecutor(self.threads, thread_name_prefix="needletissue-assembly")
-        pending = deque()
+        # each job in a copy of the caller's context: NumPy's error state (np.errstate in solve) lives there
+        pending = deque(self.pool.submit(contextvars.copy_context().run, fun, item) for item in items)
         try:
-            for item in items:
-                pending.append(self.pool.submit(fun, item))
-                if len(pending) == self.threads:
-                    yield pending.popleft().result()
             while pending:
                 yield pending.popleft().result()
         finally:
@@ -225,14 +227,14 @@ class _Bodies:
         from felupe.assembly._sparsity import _patterns
 
         key = body.field[0].indices
-        with self.lock:
+        with _PATTERNS_LOCK:
             patterns = _patterns.setdefault(key, WeakKeyDictionary())
             own, keep = patterns.get(key), _Values()
             patterns[key] = keep
         try:
             body.assemble.matrix()
         finally:
-            with self.lock:
+            with _PATTERNS_LOCK:
                 if own is None:
                     del patterns[key]
                 else:
@@ -260,15 +262,15 @@ class _Bodies:
         data10 = np.zeros(self.k10.nnz)
 
         def summed(args):
-            body, w, (sel, slot) = args
+            body, (used, local), (sel, slot) = args
             values = self._values(body)
-            if values.size != w.size:
-                raise RuntimeError(f"fem.solve: {values.size} element-matrix values, the pattern has {w.size}")
-            return (np.bincount(w, weights=values, minlength=len(data)),
+            if values.size != local.size:
+                raise RuntimeError(f"fem.solve: {values.size} element-matrix values, the pattern has {local.size}")
+            return (used, np.bincount(local, weights=values, minlength=len(used)),
                     np.bincount(slot, weights=values[sel], minlength=len(data10)) if len(sel) else None)
 
-        for d, d10 in self._ordered(summed, list(zip(self.bodies, self.slots, self.slots10))):
-            data += d
+        for used, d, d10 in self._ordered(summed, list(zip(self.bodies, self.slots, self.slots10))):
+            data[used] += d  # the body's own slots (unique): the same sums, in the same order, as over all of K11
             if d10 is not None:
                 data10 += d10
             del d, d10
@@ -310,7 +312,13 @@ class _Bodies:
             sel = (r >= 0) & (c0 >= 0)
             w10[sel] = np.searchsorted(keys10, r[sel] * n0 + c0[sel])
             del rows, r, c, c0, keep, sel
-            self.slots.append(w[p.position])
+            w = w[p.position]
+            mark = np.zeros(len(keys) + 1, bool)
+            mark[w] = True
+            used = np.flatnonzero(mark)
+            index = np.cumsum(mark, dtype=np.int32) - 1
+            self.slots.append((used.astype(np.int32), index[w]))
+            del mark, index
             v10 = w10[p.position]
             sel = np.flatnonzero(v10 >= 0)
             self.slots10.append((sel, v10[sel]))
