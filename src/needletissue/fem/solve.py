@@ -34,7 +34,8 @@ SUBSTEP_TOL = 0.1           # they go on to |r| < this x tol: mixing stops just 
 SUBSTEP_STALL = 3           # this many in a row without progress (or one 10x the smallest) end them
 # Bonded runs assemble the bodies' residuals and tangents on this many threads (None: MKL_NUM_THREADS if set,
 # else one per core): the bodies are independent and NumPy releases the GIL in their array work. Default
-# `fe needle`: residual 0.054 -> 0.036 s, tangent 0.40 -> 0.27 s on two (docs/bench.md, "Threaded assembly").
+# `fe needle`: residual 0.060-0.074 -> 0.045-0.051 s, tangent 0.37-0.40 -> 0.24-0.25 s on two (docs/bench.md,
+# "Threaded assembly").
 # The sums keep the bodies' order, so the bits do not depend on the threads.
 ASSEMBLY_THREADS: int | None = None
 
@@ -159,8 +160,8 @@ class _Bodies:
     """Residual, tangent and linear solve for FElupe's newtonraphson when the items are the model's
     bodies and point loads only (no contact): each body's element matrices go straight into the upper
     triangle of the free-free block K11 (and into K10), whose CSR patterns are built once, through one
-    int32 index per integrated value into the body's own slots of K11, instead of FElupe's per-body CSR matrix (an int64 position per
-    value, ~1.5 GB at paper scale), the sum of the bodies' global matrices, its partition, a symmetry test
+    int32 index per integrated value into the body's own slots of K11, instead of FElupe's per-body CSR
+    matrix (an int64 position per value, ~1.5 GB at paper scale), the sum of the bodies' global matrices, its partition, a symmetry test
     and a cut-out triangle at every iteration (docs/bench.md). The bodies' hyperelastic laws have
     symmetric tangents (second derivatives of an energy). Bodies are assembled on `threads` threads,
     at most one body's element matrices alive per thread (FElupe's copy in its results is dropped)."""
@@ -219,7 +220,8 @@ class _Bodies:
             f[:r.shape[0]] += r
         return f
 
-    def _values(self, body) -> np.ndarray:
+    @staticmethod
+    def _values(body) -> np.ndarray:
         """The body's integrated element matrices at the state of its last residual, flat, as FElupe
         would sum them (its sparsity pattern's value order); FElupe's own sparse assembly is skipped."""
         from weakref import WeakKeyDictionary
