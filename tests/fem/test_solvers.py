@@ -144,6 +144,7 @@ def test_metis_ordering_is_a_permutation_that_pardiso_uses_for_the_same_solution
     assert linsolve.nested_dissection(sp.identity(5, format="csr")) is None  # nothing to order
     b = np.random.default_rng(1).normal(size=upper.shape[0])
     x, fill = {}, {}
+    monkeypatch.setattr(linsolve, "SINGLE", False)  # the double factor's round-off
     for ordering in ("mkl", "metis"):
         monkeypatch.setattr(linsolve, "ORDERING", ordering)
         s = linsolve.make("pardiso")
@@ -224,3 +225,65 @@ def test_pardiso_gets_one_thread_per_core_whatever_set_mkl_before(monkeypatch):
             assert mkl_threads() == [len(os.sched_getaffinity(0))] * len(mkl_threads())
     finally:
         limiter.restore_original_limits()
+
+
+def _clamped_needle_tangent(n=(30, 4, 4), cells=(12, 3, 3)):
+    """The tetra10 stiffness of a steel bar clamped at x = 0 (positive definite): upper triangle, full matrix."""
+    import scipy.sparse as sp
+
+    mesh = TaggedMesh.box(n, cells, origin=(0, -2, -2), region="needle")
+    K = FEModel(mesh, {"needle": "needle"}, order=2).bodies["needle"].assemble.matrix().tocsr()
+    fixed = np.flatnonzero(np.isclose(mesh.points[:, 0], 0.0))
+    free = np.setdiff1d(np.arange(K.shape[0]), (3 * fixed[:, None] + np.arange(3)).ravel())
+    upper = sp.triu(K[free][:, free], format="csr")
+    upper.sort_indices()
+    return upper, (upper + sp.triu(upper, 1).T).tocsr()
+
+
+@pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
+def test_single_precision_cholesky_is_refined_by_cg_to_the_double_solution(monkeypatch):
+    """linsolve.SINGLE: Pardiso factors the tangent in single precision (iparm 28 = 1, half the factor's
+    memory) and CG on the double matrix, preconditioned by that factor, brings the solution to SINGLE_RTOL;
+    a substep's resolve is one single-precision back-substitution; a tangent whose CG does not converge is
+    factored in double, and so is every later one."""
+    upper, A = _clamped_needle_tangent()
+    b = np.random.default_rng(2).normal(size=A.shape[0])
+    monkeypatch.setattr(linsolve, "SINGLE", False)
+    d = linsolve.make("pardiso")
+    ref = d(upper, b, upper=True)
+    d.close()
+    monkeypatch.setattr(linsolve, "SINGLE", True)
+    s = linsolve.make("pardiso")
+    s.keep_factor(True)
+    x = s(upper, b, upper=True)
+    assert s._fun.solvers[2].iparm[27] == 1 and s.factor == "single+cg"  # the factor is single precision
+    assert np.linalg.norm(A @ x - b) <= linsolve.SINGLE_RTOL * np.linalg.norm(b)
+    np.testing.assert_allclose(x, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
+    y = s.resolve(b)  # one back-substitution with the single factor: close, not exact
+    err = np.abs(y - ref).max() / np.abs(ref).max()
+    assert 0 < err < 1e-2  # kappa x eps(float32)
+    s.release()
+    monkeypatch.setattr(linsolve, "SINGLE_MAXITER", 0)  # CG may not iterate: it cannot reach SINGLE_RTOL
+    x = s(upper, b, upper=True)
+    assert s.factor == "double" and s._fun.solvers[2].iparm[27] == 0  # double from now on
+    assert np.linalg.norm(A @ x - b) < 1e-10 * np.linalg.norm(b)
+    np.testing.assert_allclose(s.resolve(b), x, rtol=0, atol=1e-12 * np.abs(x).max())  # a double factor kept
+    s.close()
+
+
+@pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
+def test_single_precision_newton_reaches_the_double_field(monkeypatch):
+    """The Newton solution does not depend on the factor's precision (same tolerance on the residual):
+    a large-deflection cantilever with substeps, single against double, to 1e-7 of max |u|."""
+    mesh = TaggedMesh.box((30, 4, 4), (16, 3, 3), origin=(0, -2, -2), region="needle")
+    out = {}
+    for single in (False, True):
+        monkeypatch.setattr(linsolve, "SINGLE", single)
+        model = FEModel(mesh, {"needle": "needle"}, order=2)
+        out[single] = solve(model, [Fixed("xmin"), SurfaceForce("xmax", (0, 0, 400.0))], [0.5, 1.0],
+                            solver="pardiso", progress=False, results=False)
+    ref = out[False][-1].displacement
+    assert np.abs(ref).max() > 1.0
+    np.testing.assert_allclose(out[True][-1].displacement, ref, rtol=0, atol=1e-7 * np.abs(ref).max())
+    assert max(n[-1] for n in out[True][-1].residual_norms) < 1e-8
+    assert (out[True][-1].linear_factor, out[False][-1].linear_factor) == ("single+cg", "double")

@@ -67,6 +67,13 @@ class TimedSolver:
             close()
 
     @property
+    def factor(self) -> str:
+        """Pardiso's Cholesky precision: "single+cg" (refined by CG) or "double" (also after a fallback);
+        "" for the other backends."""
+        single = getattr(self._fun, "single", None)
+        return "" if single is None else ("single+cg" if single else "double")
+
+    @property
     def can_resolve(self) -> bool:
         """Whether the backend can keep its last factorisation for `resolve` (Pardiso with reuse)."""
         return bool(getattr(self._fun, "can_keep", False))
@@ -121,11 +128,12 @@ class TimedSolver:
 
 
 def make(name: str, points: np.ndarray | None = None, dof1: np.ndarray | None = None,
-         rtol: float = 1e-9, maxiter: int = 3000) -> TimedSolver:
+         rtol: float = 1e-9, maxiter: int = 3000, single: bool | None = None) -> TimedSolver:
     """A timed linear solver. For "amg", `points` (n,3) and the free dofs `dof1` give the rigid-body
-    modes (near-null space) that smoothed aggregation needs for elasticity."""
+    modes (near-null space) that smoothed aggregation needs for elasticity. `single`: Pardiso's
+    Cholesky in single precision, refined by CG (default SINGLE)."""
     if name == "pardiso":
-        fun = _Pardiso(REUSE_ANALYSIS)
+        fun = _Pardiso(REUSE_ANALYSIS, SINGLE if single is None else single)
     elif name == "scipy":
         from scipy.sparse.linalg import spsolve
 
@@ -201,6 +209,56 @@ def nested_dissection(M) -> np.ndarray | None:
 CHOLESKY_IPARM = {1: 1, 2: 2, 8: 0, 18: -1}
 
 
+# The Cholesky factor in single precision (iparm 28 = 1: half the memory, ~0.6x the time) preconditions CG
+# on the double-precision tangent, to a relative residual of SINGLE_RTOL (4-9 back-substitutions on the
+# needle model); a tangent whose CG needs more than SINGLE_MAXITER iterations, or that is not positive
+# definite in single precision, is factored in double, and so is every later one. Paper-scale history:
+# linear solves 514 -> 255 s, peak 10.93 -> 8.19 GiB (docs/bench.md, "Single-precision Cholesky").
+SINGLE = True
+SINGLE_RTOL = 1e-8
+SINGLE_MAXITER = 40
+
+
+def _single(M, b):
+    """M (CSR) and b in single precision, as Pardiso reads them with iparm 28 = 1."""
+    import scipy.sparse as sp
+
+    M32 = M if M.dtype == np.float32 else sp.csr_matrix((M.data.astype(np.float32), M.indices, M.indptr),
+                                                       shape=M.shape)
+    return M32, np.asfortranarray(b, np.float32)
+
+
+def _symmetric(upper):
+    """x -> A x for the symmetric A whose upper triangle (CSR) is `upper`."""
+    d, lower = upper.diagonal(), upper.T.tocsr()
+    return lambda x: upper @ x + lower @ x - d * x
+
+
+def _pcg(A, precondition, b, rtol: float, maxiter: int):
+    """Preconditioned CG on A x = b (A: a matvec), from precondition(b); None if the residual is not below
+    rtol |b| within maxiter iterations."""
+    nb = np.linalg.norm(b)
+    x = precondition(b)
+    if nb == 0:
+        return x
+    r = b - A(x)
+    z = precondition(r)
+    p, rz = z, r @ z
+    for _ in range(maxiter + 1):
+        if np.linalg.norm(r) <= rtol * nb:
+            return x
+        q = A(p)
+        alpha = rz / (p @ q)
+        if not np.isfinite(alpha) or alpha <= 0:
+            return None
+        x = x + alpha * p
+        r = r - alpha * q
+        z = precondition(r)
+        rz, rz0 = r @ z, rz
+        p = z + (rz / rz0) * p
+    return None
+
+
 class _Pardiso:
     """solver(A, b) on MKL Pardiso through pypardiso's ctypes wrapper, phase by phase.
 
@@ -218,9 +276,12 @@ class _Pardiso:
 
     With `keep` set (TimedSolver.keep_factor), the factor of the last call stays for `resolve(b)`
     (phase 33 only: modified-Newton substeps in fem.solve) until `release()` or the next call.
+
+    With `single` the Cholesky is factored in single precision and refined by CG on the double tangent
+    (SINGLE); LDL^T and LU stay double.
     """
 
-    def __init__(self, reuse: bool = True):
+    def __init__(self, reuse: bool = True, single: bool = False):
         import weakref
 
         _mkl_rt_path()
@@ -235,10 +296,11 @@ class _Pardiso:
         for i, v in CHOLESKY_IPARM.items():
             self.solvers[2].set_iparm(i, v)
         self.definite = True  # try Cholesky first until a tangent is not positive definite
+        self.single = single  # Cholesky in single precision, refined by CG, until CG does not converge
         self.pattern = {}  # mtype -> (indptr, indices) of the analysed matrix
         self.analyses = 0
         self.keep = False  # keep the factor after a call, for resolve(), until release()
-        self.kept = None   # (PyPardisoSolver, matrix) whose factor is kept
+        self.kept = None   # (PyPardisoSolver, matrix, single precision) whose factor is kept
         weakref.finalize(self, _Pardiso._release, self.solvers)
 
     can_keep = True
@@ -265,10 +327,14 @@ class _Pardiso:
             ps.set_phase(13)
 
     def resolve(self, b):
-        """Back-substitution (phase 33) with the kept factor; None when none is kept."""
+        """Back-substitution (phase 33) with the kept factor; None when none is kept. With a single-precision
+        factor too (no CG: a substep corrects with a stale tangent anyway, and Anderson mixing absorbs the
+        rounding; CG there cost more than the factorisations saved on the needle model)."""
         if self.kept is None:
             return None
-        ps, M = self.kept
+        ps, M, single = self.kept
+        if single:
+            return self._back(ps, M)(np.asarray(b, float))
         b = ps._check_b(M, b)
         ps.set_phase(33)
         try:
@@ -294,6 +360,11 @@ class _Pardiso:
             except PyPardisoError as exc:
                 if exc.value != -4:  # -4: a pivot <= 0, not positive definite
                     raise
+                if self.single:  # perhaps only in single precision: the double Cholesky first
+                    self.single = False
+                    self.solvers[2].free_memory(everything=True)
+                    self.pattern.pop(2, None)
+                    return self(A, b, upper=upper)
                 self.definite = False
                 self.solvers[2].free_memory(everything=True)
                 self.pattern.pop(2, None)
@@ -314,7 +385,7 @@ class _Pardiso:
                 return x
             finally:
                 if ok and self.keep:
-                    self.kept = (ps, M)
+                    self.kept = (ps, M, False)
                 else:
                     ps.free_memory(everything=True)
         known = self.pattern.get(mtype)
@@ -329,31 +400,54 @@ class _Pardiso:
                 perm = nested_dissection(M) if ORDERING == "metis" else None
                 ps.perm = np.zeros(0, np.int32) if perm is None else perm + 1
                 ps.set_iparm(5, 0 if perm is None else 1)  # 1: the fill-reducing ordering is ps.perm
+            single = mtype == 2 and self.single
+            ps.set_iparm(28, int(single))  # the precision of the factor (and of a, b, x at every phase)
             ps.set_phase(11)
-            ps._call_pardiso(M, b)
+            ps._call_pardiso(*(_single(M, b) if single else (M, b)))
             self.pattern[mtype] = (M.indptr.copy(), M.indices.copy())
             self.analyses += 1
         else:
             M = fit
-        ok = False
+        single = bool(ps.iparm[27])
+        F = _single(M, b)[0] if single else M  # the matrix Pardiso factors (float32 values if single)
+        ok, x = False, None
         try:
             ps.set_phase(22)
-            ps._call_pardiso(M, b)
-            ps.set_phase(33)
-            x = ps._call_pardiso(M, b)
-            ok = True
-            return x
+            ps._call_pardiso(*(_single(F, b) if single else (F, b)))
+            if single:
+                x = _pcg(_symmetric(M), self._back(ps, F), b, SINGLE_RTOL, SINGLE_MAXITER)
+            else:
+                ps.set_phase(33)
+                x = ps._call_pardiso(F, b)
+            ok = x is not None
         except Exception:
             self.pattern.pop(mtype, None)  # analyse afresh after a failure
             raise
         finally:
             if ok and self.keep:  # the factor stays for resolve() until release()
-                self.kept = (ps, M)
+                self.kept = (ps, F, single)
                 ps.set_phase(13)
             else:
                 ps.set_phase(0)  # release the factor, keep the analysis
                 ps._call_pardiso(sp.csr_matrix((0, 0)), np.zeros(0))
                 ps.set_phase(13)
+        if x is None:  # CG did not converge: this tangent and every later one in double precision
+            self.single = False
+            self.pattern.pop(mtype, None)
+            ps.free_memory(everything=True)
+            return self._solve(mtype, M, b)
+        return x
+
+    @staticmethod
+    def _back(ps, F):
+        """r -> F^-1 r by one back-substitution with the (single-precision) factor of F, in double."""
+        def back(r):
+            ps.set_phase(33)
+            try:
+                return ps._call_pardiso(F, np.asfortranarray(r, np.float32)).astype(float)
+            finally:
+                ps.set_phase(13)
+        return back
 
 
 def _keys(indptr, indices, n):

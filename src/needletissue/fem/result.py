@@ -54,6 +54,7 @@ class FEResult:
     materials: dict[str, str] = field(default_factory=dict)
     drucker_unstable_fraction: dict[str, float] = field(default_factory=dict)
     newton_substeps: int = 0  # modified-Newton substeps (same factorisation) since the start of the solve
+    linear_factor: str = ""  # Pardiso's Cholesky: "single+cg" (linsolve.SINGLE) or "double"; "" for the others
 
     def check_drucker(self, materials: dict[str, str]) -> "FEResult":
         """Flag cells beyond their material's Drucker-stable range (materials.stability: the law's
@@ -107,6 +108,7 @@ class FEResult:
             "cutbacks": self.cutbacks,
             "wall_time_s": self.wall_time_s,
             "linear_solver": self.linear_solver,
+            "linear_factor": self.linear_factor,
             "timing_s": self.timing_s,
             "mesh_stats": self.mesh_stats,
             "region_tags": self.region_tags,

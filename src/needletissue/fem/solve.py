@@ -535,9 +535,11 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     t0 = time.perf_counter()
     loads = _Loads(model, bcs)
     name = linsolve.choose(solver, len(loads.dof1), model.order)
-    if any(hasattr(i, "step_bound") for i in items):  # contact: the same bits in every run
+    contact = any(hasattr(i, "step_bound") for i in items)
+    if contact:  # the same bits in every run
         linsolve.request_reproducible_mkl()
-    linear = linsolve.make(name, model.mesh.points, loads.dof1)
+    # contact runs: the double factor their measured paths were made with (a contact path follows the last digits)
+    linear = linsolve.make(name, model.mesh.points, loads.dof1, single=False if contact else None)
     bodies = list(model.bodies.values())
     all_items = [*bodies, *(ld for ld, _ in loads.loads), *items]
     field = model.field
@@ -690,7 +692,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                                     model.mesh.stats(), ncut, linear.name,
                                     {"newton": newton_s, "linear_solve": linear.seconds,
                                      "assembly_and_update": newton_s - linear.seconds}, norms,
-                                    newton_substeps=nsub))
+                                    newton_substeps=nsub, linear_factor=linear.factor))
     return out
 
 
@@ -746,7 +748,8 @@ def _result(model, loads, fvec, lam, nsteps, nit, ncut, wall, linear, newton_s, 
         steps=nsteps, newton_iterations=nit, wall_time_s=wall, mesh_stats=mesh.stats(), cutbacks=ncut,
         linear_solver=linear.name,
         timing_s={"newton": newton_s, "linear_solve": linear.seconds, "assembly_and_update": newton_s - linear.seconds},
-        residual_norms=[list(n) for n in norms], newton_substeps=nsub, region_tags=tags, points=mesh.points,
+        residual_norms=[list(n) for n in norms], newton_substeps=nsub, linear_factor=linear.factor,
+        region_tags=tags, points=mesh.points,
         cells=mesh.cells,
         cell_data={"von_mises_MPa": vm, "principal_stretches": stretch, "cauchy_stress_MPa": cauchy,
                    "green_lagrange_strain": strain, "region": mesh.region_of_cells().astype(np.int32)},
