@@ -176,6 +176,31 @@ def test_threaded_bodies_give_the_same_bits_and_stop_on_a_failing_body():
     three.close()
 
 
+def test_a_dominant_body_evaluates_its_law_in_threaded_chunks_with_the_same_bits():
+    """A body with more than half of the cells (adipose here) has its material law evaluated in chunks of
+    cells on FElupe's threads while the bodies are assembled on threads: the residual and tangent of one
+    thread bit for bit; the law's flag is restored by close()."""
+    from needletissue.fem.solve import _Bodies, _Loads
+
+    mesh = TaggedMesh.box((6, 6, 12), (3, 3, 6), layers={"muscle": (0, 3), "adipose": (3, 12)})
+    model = FEModel(mesh, {"muscle": "muscle", "adipose": "adipose"}, order=2, formulation="mixed")
+    loads = _Loads(model, [Fixed("zmin"), SurfaceForce("zmax", (0.1, 0.0, 0.2))])
+    x = model.field
+    x[0].values[:] = np.random.default_rng(6).normal(size=x[0].values.shape) * 1e-2
+    items = list(model.bodies.values())
+    law = model.bodies["adipose"].umat
+    law.chunksize = 64  # several chunks on this small mesh
+    one = _Bodies(items, items, loads.dof1, loads.dof0, model.ndof, threads=1)
+    one.fun(x)
+    f1, (u1, k1) = one.fun(x), one.jac(x)
+    two = _Bodies(items, items, loads.dof1, loads.dof0, model.ndof, threads=2)
+    assert law.parallel and not model.bodies["muscle"].umat.parallel
+    f2, (u2, k2) = two.fun(x), two.jac(x)
+    assert np.array_equal(f1, f2) and np.array_equal(u1.data, u2.data) and np.array_equal(k1.data, k2.data)
+    two.close()
+    assert not law.parallel
+
+
 def test_predictor_with_nearly_incompressible_tissue():
     """Adipose column (P2/P0, K = 8,571 mu0) bent by a lateral tip load over three increments, 13 mm
     of 40: the increments started from the extrapolated displacement converge without a cut-back, in

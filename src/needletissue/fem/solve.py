@@ -175,11 +175,22 @@ class _Bodies:
         own = len({id(b.field[0].indices) for b in bodies}) == len(bodies)
         self.threads = max(1, min(int(threads), len(bodies))) if own else 1
         self.pool = None
+        # a body with more than half of the cells keeps the other threads idle: its material law is evaluated
+        # in chunks of cells on FElupe's threads too (pointwise laws; the same bits; docs/bench.md, "Threaded
+        # assembly")
+        cells = [b.field.region.mesh.ncells for b in bodies]
+        self.chunked = [b.umat for b, n in zip(bodies, cells) if 2 * n > sum(cells) and hasattr(b.umat, "parallel")
+                        and not b.umat.parallel] if self.threads > 1 else []
+        for umat in self.chunked:
+            umat.parallel = True
 
     def close(self):
         if self.pool is not None:
             self.pool.shutdown()
             self.pool = None
+        for umat in self.chunked:
+            umat.parallel = False
+        self.chunked = []
 
     def _ordered(self, fun, items):
         """fun(item) for each item on the threads (one body's element matrices per thread: ~1 GB at paper
