@@ -1,5 +1,7 @@
 """The three linear solvers give the same Newton solution; "auto" picks by size."""
 
+import importlib
+
 import numpy as np
 import pytest
 
@@ -287,3 +289,23 @@ def test_single_precision_newton_reaches_the_double_field(monkeypatch):
     np.testing.assert_allclose(out[True][-1].displacement, ref, rtol=0, atol=1e-7 * np.abs(ref).max())
     assert max(n[-1] for n in out[True][-1].residual_norms) < 1e-8
     assert (out[True][-1].linear_factor, out[False][-1].linear_factor) == ("single+cg", "double")
+
+
+def test_assembly_and_vtu_threads_follow_the_share_granted_in_mkl_num_threads(monkeypatch):
+    """One rule for the threads a process may use: a stage given MKL_NUM_THREADS=1 beside another (report.pipeline)
+    assembles and writes VTU on one thread; without it, one per core; ASSEMBLY_THREADS overrides assembly only."""
+    import os
+
+    from needletissue.fem import result
+    solver = importlib.import_module("needletissue.fem.solve")  # the package exports the function
+
+    monkeypatch.setattr(solver, "ASSEMBLY_THREADS", None)
+    monkeypatch.setenv("MKL_NUM_THREADS", "1")
+    with result._writers() as pool:
+        assert (linsolve.granted_threads(), solver.assembly_threads(), pool._max_workers) == (1, 1, 1)
+    monkeypatch.delenv("MKL_NUM_THREADS")
+    cores = len(os.sched_getaffinity(0))
+    with result._writers() as pool:
+        assert (linsolve.granted_threads(), solver.assembly_threads(), pool._max_workers) == (cores, cores, cores)
+    monkeypatch.setattr(solver, "ASSEMBLY_THREADS", 3)
+    assert solver.assembly_threads() == 3 and linsolve.granted_threads() == cores

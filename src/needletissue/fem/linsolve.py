@@ -538,6 +538,15 @@ def mkl_reproducible() -> bool:
     return ctypes.CDLL(os.environ["PYPARDISO_MKL_RT"]).MKL_CBWR_Get(1) != 1  # MKL_CBWR_BRANCH, BRANCH_OFF
 
 
+def granted_threads() -> int:
+    """The threads this process may use: MKL_NUM_THREADS when set (report.pipeline gives each stage solving
+    beside others its share there), else one per core it may run on."""
+    import os
+
+    share = os.environ.get("MKL_NUM_THREADS", "")
+    return max(1, int(share)) if share.isdigit() else len(os.sched_getaffinity(0))
+
+
 def thread_limits(name: str, reproducible: bool = False):
     """Context for a solve: OpenBLAS on one thread (single_threaded_openblas), and MKL's Pardiso on
     PARDISO_THREADS threads when MKL_NUM_THREADS is not set. `reproducible`: the same bits in every run,
@@ -552,7 +561,7 @@ def thread_limits(name: str, reproducible: bool = False):
     threads = 1 if reproducible and name == "pardiso" and not mkl_reproducible() else PARDISO_THREADS
     # set even for MKL's default: gmsh run in the same process (the anatomical model's mesh) sets the shared
     # OpenMP runtime to its own thread count, and MKL follows it (measured: one thread after the mesh)
-    threads = threads or len(os.sched_getaffinity(0))
+    threads = threads or granted_threads()
     if name == "pardiso" and "MKL_NUM_THREADS" not in os.environ:
         try:
             from threadpoolctl import ThreadpoolController

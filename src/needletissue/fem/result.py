@@ -204,12 +204,13 @@ def _file_name(region: str, taken: set) -> str:
 
 
 def _writers():
-    """A thread pool for the VTU pieces, one thread per core: most of a piece's time is zlib, which releases
-    the GIL (a 128k-tet result, whole mesh and blocks: 1.68 -> 1.00 s on two cores, medians of 3)."""
-    import os
+    """A thread pool for the VTU pieces, one thread per granted core: most of a piece's time is zlib, which
+    releases the GIL (a 128k-tet result, whole mesh and blocks: 1.68 -> 1.00 s on two cores, medians of 3)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    return ThreadPoolExecutor(len(os.sched_getaffinity(0)), thread_name_prefix="needletissue-vtu")
+    from needletissue.fem.linsolve import granted_threads
+
+    return ThreadPoolExecutor(granted_threads(), thread_name_prefix="needletissue-vtu")
 
 
 def _write_vtu(path: Path, points, cells, point_data: dict, cell_data: dict, field_data: dict) -> Path:

@@ -41,14 +41,10 @@ ASSEMBLY_THREADS: int | None = None
 
 
 def assembly_threads() -> int:
-    """ASSEMBLY_THREADS, else MKL_NUM_THREADS (a process solving beside others is given its share there,
-    report.pipeline), else one per core."""
-    import os
+    """ASSEMBLY_THREADS, else the threads granted to this process (linsolve.granted_threads)."""
+    from needletissue.fem.linsolve import granted_threads
 
-    if ASSEMBLY_THREADS is not None:
-        return max(1, int(ASSEMBLY_THREADS))
-    share = os.environ.get("MKL_NUM_THREADS", "")
-    return max(1, int(share)) if share.isdigit() else len(os.sched_getaffinity(0))
+    return max(1, int(ASSEMBLY_THREADS)) if ASSEMBLY_THREADS is not None else granted_threads()
 
 
 def _substep_plugin(fem, linear, dof1, nmax: int, tol: float):

@@ -115,8 +115,10 @@ def _start_isolated(stage: Stage, cfg: ReproduceConfig, ctx: "StageContext", sid
     import os
     from concurrent.futures import ProcessPoolExecutor
 
+    from needletissue.fem.linsolve import granted_threads
+
     ignore_sigpipe()   # a dead worker: BrokenProcessPool, not a dead caller
-    threads = os.environ.get("MKL_NUM_THREADS") or str(max(1, len(os.sched_getaffinity(0)) // side_by_side))
+    threads = os.environ.get("MKL_NUM_THREADS") or str(max(1, granted_threads() // side_by_side))
     pool = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"),
                                initializer=_mkl_threads, initargs=(threads,))
     return pool, pool.submit(_timed, stage.run, cfg, StageContext(ctx.run_dir, ctx.ct, ctx.labels))
