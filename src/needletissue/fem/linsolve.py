@@ -400,20 +400,20 @@ class _Pardiso:
                 perm = nested_dissection(M) if ORDERING == "metis" else None
                 ps.perm = np.zeros(0, np.int32) if perm is None else perm + 1
                 ps.set_iparm(5, 0 if perm is None else 1)  # 1: the fill-reducing ordering is ps.perm
-            single = mtype == 2 and self.single
-            ps.set_iparm(28, int(single))  # the precision of the factor (and of a, b, x at every phase)
-            ps.set_phase(11)
-            ps._call_pardiso(*(_single(M, b) if single else (M, b)))
-            self.pattern[mtype] = (M.indptr.copy(), M.indices.copy())
-            self.analyses += 1
+            ps.set_iparm(28, int(mtype == 2 and self.single))  # the factor's precision (and a, b, x's)
         else:
             M = fit
         single = bool(ps.iparm[27])
-        F = _single(M, b)[0] if single else M  # the matrix Pardiso factors (float32 values if single)
+        F, Fb = _single(M, b) if single else (M, b)  # what Pardiso reads (float32 values if single)
+        if fit is None:
+            ps.set_phase(11)
+            ps._call_pardiso(F, Fb)
+            self.pattern[mtype] = (M.indptr.copy(), M.indices.copy())
+            self.analyses += 1
         ok, x = False, None
         try:
             ps.set_phase(22)
-            ps._call_pardiso(*(_single(F, b) if single else (F, b)))
+            ps._call_pardiso(F, Fb)
             if single:
                 x = _pcg(_symmetric(M), self._back(ps, F), b, SINGLE_RTOL, SINGLE_MAXITER)
             else:
