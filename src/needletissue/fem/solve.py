@@ -215,11 +215,29 @@ class _Bodies:
 
     @staticmethod
     def _vector(item, x) -> np.ndarray:
+        import felupe as fem
+
         item.field.link(x)
-        r = item.assemble.vector(field=item.field)
+        if type(item) is fem.SolidBody and len(item.field.fields) == 1 and item.apply is None:
+            r = _Bodies._force(item)
+        else:
+            r = item.assemble.vector(field=item.field).toarray().ravel()
         if item.assemble.multiplier is not None:
             r = r * item.assemble.multiplier
-        return r.toarray().ravel()
+        return r
+
+    @staticmethod
+    def _force(body) -> np.ndarray:
+        """A displacement body's internal force vector, its element vectors summed by np.bincount in FElupe's
+        order (the same bits) instead of FElupe's COO -> CSR matrix (int64 row and column per value): at paper
+        scale ~0.45 -> ~0.05 s and ~0.4 GB less per residual of the adipose body (docs/bench.md)."""
+        from felupe.assembly import IntegralFormCartesian
+
+        stress = body._gradient(body.field)[0]
+        field = body.field[0]
+        values = IntegralFormCartesian(stress, field, body.field.region.dV, grad_v=True).integrate()
+        rows = field.indices.ai[0]
+        return np.bincount(rows, weights=values.transpose(2, 0, 1).ravel(), minlength=field.indices.shape[0])
 
     def fun(self, x):
         f = np.zeros(self.n)
