@@ -109,3 +109,30 @@ def test_ogden_matches_incompressible_closed_form(law, mode):
     view = fem.ViewMaterialIncompressible(materials.Material("t", model, dict(p)).isochoric())
     _, P, _ = getattr(view, mode)(stretch)
     np.testing.assert_allclose(P, cf.nominal_stress(model, p, mode, stretch), rtol=1e-10, atol=0)
+
+
+@pytest.mark.parametrize("chunk", [7, 16384])
+def test_jacobi_eigen_decomposition_equals_lapack_on_degenerate_and_large_stretches(monkeypatch, chunk):
+    """laws._eigh3 (cyclic Jacobi on blocks of matrices, Ogden's spectral decomposition) against LAPACK's eigh:
+    the same eigenvalues and the same spectral projections (eigenvectors of repeated eigenvalues are arbitrary,
+    the stress sum_a w_a N_a (x) N_a is not), at F = I, two nearly equal stretches, 5 % and 200 % strain."""
+    from needletissue.materials import laws
+
+    monkeypatch.setattr(laws, "EIGH_CHUNK", chunk)
+    rng = np.random.default_rng(4)
+    F = np.concatenate([np.broadcast_to(np.eye(3), (5, 3, 3)),
+                        np.diag([1.1, 1.0, 1.0]) + 1e-9 * rng.normal(size=(20, 3, 3)),
+                        np.eye(3) + 0.05 * rng.normal(size=(40, 3, 3)),
+                        np.diag([3.0, 0.5, 0.6]) @ (np.eye(3) + 0.3 * rng.normal(size=(40, 3, 3)))])
+    C = F.transpose(0, 2, 1) @ F
+    lam, N = laws._eigh3(C)
+    ref_lam, ref_N = np.linalg.eigh(C)
+    scale = ref_lam.max(1)
+    assert np.all(np.abs(np.sort(lam, 1) - ref_lam).max(1) <= 1e-14 * scale)
+    np.testing.assert_allclose(N.transpose(0, 2, 1) @ N, np.broadcast_to(np.eye(3), C.shape), rtol=0, atol=1e-14)
+
+    def power(lam, N, q=7.1):  # C^q, Ogden's dW/dC for alpha = 16.2
+        return np.matmul(N * lam[:, None, :] ** q, N.transpose(0, 2, 1))
+
+    ref = power(ref_lam, ref_N)
+    assert np.all(np.abs(power(lam, N) - ref).max((1, 2)) <= 1e-13 * np.abs(ref).max((1, 2)))
