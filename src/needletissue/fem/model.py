@@ -58,6 +58,16 @@ class SurfaceForce:
 BoundaryCondition = Fixed | PrescribedDisplacement | SurfaceForce
 
 
+def _lean_indices(field):
+    """FElupe keeps a column index of zeros (int64) beside each value's row for its COO vectors: a broadcast zero
+    instead (SciPy copies it only while it converts one; paper scale: 260 MB less for the whole solve)."""
+    import numpy as np
+
+    indices = field[0].indices
+    rows = indices.ai[0]
+    indices.ai = (rows, np.broadcast_to(np.zeros((), rows.dtype), rows.shape))
+
+
 class FEModel:
     """A nonlinear FE model: tagged mesh + material per region.
 
@@ -121,12 +131,14 @@ class FEModel:
         gmesh = fem.Mesh(points, mesh.cells, cell_type)
         self.region = region_cls(gmesh, quadrature=quad, grad=False)
         self.field = fem.FieldContainer([fem.Field(self.region, dim=3)])
+        _lean_indices(self.field)
         self.bodies = {}
         self.regions = {}
         for name, ids in mesh.regions.items():
             rmesh = fem.Mesh(points, mesh.cells[ids], cell_type)  # shares the global points
             region = region_cls(rmesh, quadrature=quad)
             field = fem.FieldContainer([fem.Field(region, dim=3)])
+            _lean_indices(field)
             field.link(self.field)
             mat = self.materials[name]
             if formulation == "mixed" and mat.model != "elastic":
