@@ -159,8 +159,8 @@ EIGH_CHUNK = 16384  # matrices per Jacobi block: its ~40 work arrays stay in cac
 def _eigh3(C):
     """Eigenvalues (n, 3), unsorted, and orthonormal eigenvectors N[:, I, a] of symmetric C (n, 3, 3) by cyclic
     Jacobi rotations on all matrices at once, in blocks that stay in cache. NumPy's eigh calls LAPACK once per
-    3x3 matrix: 1.2-1.3 s for 900 k of them (the paper-scale adipose, at every residual), this 0.37 s, to the
-    same 1e-15 (quadratic convergence, 4 sweeps at 5 % strain; tests/materials/test_laws.py)."""
+    3x3 matrix: 1.2-1.3 s for 900 k of them (the paper-scale adipose, at every residual), this 0.37-0.45 s, to
+    the same 1e-15 (quadratic convergence, 4 sweeps at 5 % strain; tests/materials/test_laws.py)."""
     n = C.shape[0]
     lam, N = np.empty((n, 3)), np.empty((n, 3, 3))
     for i in range(0, n, EIGH_CHUNK):
