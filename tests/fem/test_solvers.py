@@ -310,3 +310,27 @@ def test_assembly_and_vtu_threads_follow_the_share_granted_in_mkl_num_threads(mo
         assert (linsolve.granted_threads(), solver.assembly_threads(), pool._max_workers) == (cores, cores, cores)
     monkeypatch.setattr(solver, "ASSEMBLY_THREADS", 3)
     assert solver.assembly_threads() == 3 and linsolve.granted_threads() == cores
+
+
+@pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
+def test_a_kept_double_factor_keeps_its_matrix_when_the_caller_drops_the_values(monkeypatch):
+    """fem.solve._Bodies.solve drops the tangent's values after its solve (the substeps need only the factor). A kept
+    double factor whose back-substitution reads A (two steps of iterative refinement, as Pardiso's LDL^T does on
+    perturbed pivots) must still see them: resolve equals the solve."""
+    from types import SimpleNamespace
+
+    from needletissue.fem.solve import _Bodies
+
+    upper, A = _clamped_needle_tangent()
+    n = A.shape[0]
+    b = np.random.default_rng(3).normal(size=n)
+    monkeypatch.setattr(linsolve, "SINGLE", False)
+    monkeypatch.setitem(linsolve.CHOLESKY_IPARM, 8, 2)  # phase 33 refines against A's values
+    s = linsolve.make("pardiso")
+    s.keep_factor(True)
+    x = _Bodies.solve(SimpleNamespace(n=n), (upper, None), b, SimpleNamespace(fields=[SimpleNamespace(values=np.zeros(0))]),
+                      np.arange(n), np.zeros(0, int), np.zeros(0), s)  # all dofs free
+    assert upper.data.size == 0  # the caller's values are gone
+    np.testing.assert_allclose(A @ x, b, rtol=0, atol=1e-8 * np.abs(b).max())
+    np.testing.assert_allclose(s.resolve(b), x, rtol=0, atol=1e-12 * np.abs(x).max())
+    s.close()

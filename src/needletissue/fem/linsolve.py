@@ -300,7 +300,10 @@ class _Pardiso:
         self.pattern = {}  # mtype -> (indptr, indices) of the analysed matrix
         self.analyses = 0
         self.keep = False  # keep the factor after a call, for resolve(), until release()
-        self.kept = None   # (PyPardisoSolver, matrix, single precision) whose factor is kept
+        # (PyPardisoSolver, matrix, single precision) whose factor is kept; the matrix is our own object on the
+        # caller's arrays: a caller may drop its tangent's values after the solve (fem.solve._Bodies.solve), and a
+        # double factor's back-substitution still reads them when it refines (LDL^T on perturbed pivots)
+        self.kept = None
         weakref.finalize(self, _Pardiso._release, self.solvers)
 
     can_keep = True
@@ -385,7 +388,7 @@ class _Pardiso:
                 return x
             finally:
                 if ok and self.keep:
-                    self.kept = (ps, M, False)
+                    self.kept = (ps, sp.csr_matrix(M), False)
                 else:
                     ps.free_memory(everything=True)
         known = self.pattern.get(mtype)
@@ -425,7 +428,7 @@ class _Pardiso:
             raise
         finally:
             if ok and self.keep:  # the factor stays for resolve() until release()
-                self.kept = (ps, F, single)
+                self.kept = (ps, sp.csr_matrix(F), single)
                 ps.set_phase(13)
             else:
                 ps.set_phase(0)  # release the factor, keep the analysis

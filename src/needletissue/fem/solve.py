@@ -359,9 +359,10 @@ class _Bodies:
         du = np.empty(self.n)
         du[dof1] = solver(upper, rhs, upper=True)
         du[dof0] = du0
-        # the next iteration assembles a new tangent and the substeps use the kept factor: the values go now,
-        # not after the substeps' residuals (paper scale: 140 MB off the peak); a late reader fails loudly
-        upper.data = upper.data[:0]
+        # the next iteration assembles a new tangent and the substeps use the kept factor: the values go now, not
+        # after the substeps' residuals (a fresh empty array: a slice would keep them); a kept double factor holds
+        # its own reference (linsolve._Pardiso.kept), a late reader here fails loudly
+        upper.data = np.empty(0)
         return du
 
 
