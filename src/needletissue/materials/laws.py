@@ -156,7 +156,7 @@ class InvariantPolynomial(ConstitutiveMaterial):
 EIGH_CHUNK = 16384  # matrices per Jacobi block: its ~40 work arrays stay in cache (4096: 1.4x slower, 900 k at once: 1.8x)
 
 
-def _eigh3(C):
+def eigh3(C):
     """Eigenvalues (n, 3), unsorted, and orthonormal eigenvectors N[:, I, a] of symmetric C (n, 3, 3) by cyclic
     Jacobi rotations on all matrices at once, in blocks that stay in cache. NumPy's eigh calls LAPACK once per
     3x3 matrix: 1.2-1.3 s for 900 k of them (the paper-scale adipose, at every residual), this 0.37-0.45 s, to
@@ -233,7 +233,7 @@ class Ogden(ConstitutiveMaterial):
 
     def _state(self, F, hessian):
         C, J, G, Ci = _kinematics(F)
-        lam, N = _eigh3(C)  # (n, 3), N[:, I, a]
+        lam, N = eigh3(C)  # (n, 3), N[:, I, a]
         f = np.matmul(F, N)  # f[:, :, a] = F N_a
         j = np.abs(J) ** (-2 / 3)  # det(C)^(-1/3) as in the AD laws: defined for det F < 0 too (docs/fem.md)
         w, g, Y, gg, ci, gamma = 0, 0, 0, 0, 0, 0
