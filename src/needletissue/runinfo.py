@@ -215,6 +215,8 @@ def write_vtu(path: str | Path, points, cells, point_data: dict | None = None, c
 
     def array(values, name=None):
         a = np.ascontiguousarray(values)
+        if a.dtype == bool:  # VTK has no bool array NumPy can share: 0 / 1 bytes
+            a = a.view(np.uint8)
         keep.append(a)
         out = numpy_to_vtk(a, deep=False)
         if name is not None:

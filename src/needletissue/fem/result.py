@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from needletissue.runinfo import to_jsonable, write_atomic
+from needletissue.runinfo import to_jsonable, write_atomic, write_vtu
 
 
 FRAME_DEFAULT = "the mesh's coordinates, mm"
@@ -134,7 +134,7 @@ class FEResult:
         field_data = {f"region {i} = {r}" + (f" (material {self.materials[r]})" if r in self.materials else ""): i
                       for r, i in self.region_tags.items()}
         with _writers() as pool:  # VTK releases the GIL while it compresses: the pieces are written side by side
-            whole = pool.submit(_write_vtu, path, self.points, self.cells, {"displacement": self.displacement},
+            whole = pool.submit(write_vtu, path, self.points, self.cells, {"displacement": self.displacement},
                                 self.cell_data, {**field_data, **self._load_field_data(frame, force_N)})
             if blocks:
                 self.write_blocks(path.with_suffix(".vtm"), frame, force_N, pool=pool)
@@ -173,7 +173,7 @@ class FEResult:
             label = f"region {i} = {region}" + (f" (material {self.materials[region]})"
                                                  if region in self.materials else "")
             jobs.append(pool.submit(
-                _write_vtu, folder / name, self.points[nodes], local.reshape(-1, self.cells.shape[1]),
+                write_vtu, folder / name, self.points[nodes], local.reshape(-1, self.cells.shape[1]),
                 {"displacement": self.displacement[nodes], "mesh_node_id": nodes.astype(np.int64)},
                 {**{k: np.asarray(v)[ids] for k, v in self.cell_data.items()}, "mesh_cell_id": ids.astype(np.int64)},
                 {label: i, **self._load_field_data(frame, force_N)}))
@@ -211,12 +211,6 @@ def _writers():
     from needletissue.fem.linsolve import granted_threads
 
     return ThreadPoolExecutor(granted_threads(), thread_name_prefix="needletissue-vtu")
-
-
-def _write_vtu(path: Path, points, cells, point_data: dict, cell_data: dict, field_data: dict) -> Path:
-    from needletissue.runinfo import write_vtu
-
-    return write_vtu(path, points, cells, point_data, cell_data, field_data)
 
 
 def write_series(path, steps: list[tuple[float, str]]) -> Path:
