@@ -624,7 +624,9 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     newton_s = 0.0
     norms: list[list[float]] = []
     out = []
-    facts: dict = {}  # the mesh's statistics and region nodes, from the first result on (_result)
+    # what no load changes, for every result: the mesh's statistics (once, not per load: 1 s at paper scale), and
+    # each region's nodes (_result, at the first)
+    facts: dict = {"stats": model.mesh.stats()}
     emit = _emitter(log, items, t0)
     # contact runs repeat bit for bit (MKL in its reproducible mode on two threads, else one: linsolve.thread_limits)
     with bar if progress else nullcontext(), linsolve.thread_limits(name, reproducible=bool(bounded)), closing(linear), \
@@ -720,7 +722,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                                    linear, newton_s, norms, nsub, facts))
             else:
                 out.append(FEResult(target, field[0].values.copy(), {}, {}, nsteps, nit, time.perf_counter() - t0,
-                                    model.mesh.stats(), ncut, linear.name,
+                                    copy.deepcopy(facts["stats"]), ncut, linear.name,
                                     {"newton": newton_s, "linear_solve": linear.seconds,
                                      "assembly_and_update": newton_s - linear.seconds}, norms,
                                     newton_substeps=nsub, linear_factor=linear.factor))
@@ -751,14 +753,11 @@ def _min_det_f(body) -> float:
     return float(np.min(np.linalg.det(np.moveaxis(F, (0, 1), (-2, -1)))))
 
 
-def _result(model, loads, fvec, lam, nsteps, nit, ncut, wall, linear, newton_s, norms, nsub=0,
-            facts: dict | None = None) -> FEResult:
-    """The converged state as an FEResult. `facts` keeps what no load changes (the mesh's statistics, each
-    region's nodes) from the first result for the next ones: 1.4 s a load at paper scale."""
+def _result(model, loads, fvec, lam, nsteps, nit, ncut, wall, linear, newton_s, norms, nsub, facts: dict) -> FEResult:
+    """The converged state as an FEResult. `facts` holds what no load changes: the mesh's statistics, and each
+    region's nodes from the first result on (1.4 s a load at paper scale together)."""
     mesh = model.mesh
-    facts = {} if facts is None else facts
-    if not facts:
-        facts["stats"] = mesh.stats()
+    if "nodes" not in facts:
         facts["nodes"] = {r: np.unique(mesh.cells[ids]) for r, ids in mesh.regions.items()}
     u = model.field[0].values.copy()
     umag = np.linalg.norm(u, axis=1)
