@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from needletissue.errors import InputError
+from needletissue.geometry.cache import MESH_CACHE_ENV, mesh_cache_dir
 from needletissue.geometry.needle import REGIONS, SURFACES, MeshError, NeedleGeometry, mesh_needle_model
 
 COARSE = dict(needle_mesh_size=1.5, mesh_size=4.0, far_mesh_size=20.0, half_width=40.0, free_length=80.0)
@@ -278,7 +279,7 @@ def test_mesh_cache_returns_the_same_mesh_without_gmsh_and_keys_every_input(tmp_
     geometry or order is a miss, so is a damaged entry (rewritten); NEEDLETISSUE_MESH_CACHE=0 turns the cache off."""
     import needletissue.geometry.needle as nd
 
-    monkeypatch.setenv(nd.MESH_CACHE_ENV, str(tmp_path / "cache"))
+    monkeypatch.setenv(MESH_CACHE_ENV, str(tmp_path / "cache"))
     g = NeedleGeometry(**COARSE)
     old = os.umask(0o027)
     try:
@@ -309,6 +310,6 @@ def test_mesh_cache_returns_the_same_mesh_without_gmsh_and_keys_every_input(tmp_
     e = mesh_needle_model(g, tmp_path / "e.msh", cache=True)
     assert not e.cached and entry.read_bytes() == (tmp_path / "e.msh").read_bytes()
     assert mesh_needle_model(g, tmp_path / "f.msh", cache=True).cached
-    monkeypatch.setenv(nd.MESH_CACHE_ENV, "0")
-    assert nd.mesh_cache_dir() is None
+    monkeypatch.setenv(MESH_CACHE_ENV, "0")
+    assert mesh_cache_dir() is None
     assert not mesh_needle_model(g, tmp_path / "d.msh", cache=True).cached

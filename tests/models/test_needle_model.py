@@ -15,6 +15,7 @@ from needletissue.cli import app
 from needletissue.fem.solvelog import SOLVE_LOG, read_log
 from needletissue.models.needle import NeedleModelConfig, run_needle_model
 from needletissue.geometry.needle import NeedleGeometry
+from needletissue.geometry.cache import MESH_CACHE_ENV
 from needletissue.materials import get
 
 COARSE_CLI = ["--needle-mesh-size", "2.5", "--mesh-size", "8", "--far-mesh-size", "30"]
@@ -283,7 +284,7 @@ def test_a_cached_mesh_gives_the_same_model(one_needle, tmp_path, monkeypatch):
     run, results' mesh.cached) and the answer is the uncached run's."""
     import needletissue.geometry.needle as nd
 
-    monkeypatch.setenv(nd.MESH_CACHE_ENV, str(tmp_path / "cache"))
+    monkeypatch.setenv(MESH_CACHE_ENV, str(tmp_path / "cache"))
     cfg = one_needle.config
     nd.mesh_needle_model(cfg.geometry, tmp_path / "fill.msh", order=cfg.order, cache=True)
     monkeypatch.setattr(nd, "_mesh", lambda *a, **k: pytest.fail("gmsh ran for a cached mesh"))

@@ -223,6 +223,42 @@ def test_solved_mesh_reports_its_quality_and_volumes(coarse, vol, site):
         assert abs(q["volume_error_vs_labels"][name]) < 0.15, (name, q["volume_error_vs_labels"])
 
 
+def test_mesh_cache_returns_the_same_mesh_without_gmsh_and_keys_every_input(coarse, vol, site, tmp_path,
+                                                                           monkeypatch):
+    """A cached box mesh is the meshed one array for array (dtypes, region and surface order), gmsh not run;
+    another size or site is a miss, so is a damaged entry (rewritten); the cache follows the umask."""
+    from needletissue.geometry.cache import MESH_CACHE_ENV
+
+    monkeypatch.setenv(MESH_CACHE_ENV, str(tmp_path / "cache"))
+    v = gp.crop_to_site(vol, site)
+    kw = dict(mesh_size=6.0, needle_size=3.0, far_size=18.0)
+    old = os.umask(0o027)
+    try:
+        a = gp.build_mesh(v, site, cache=True, **kw)
+    finally:
+        os.umask(old)
+    assert not a.cached and {f.stat().st_mode & 0o777 for f in (tmp_path / "cache").iterdir()} == {0o640}
+    real = gp._box_mesh
+    monkeypatch.setattr(gp, "_box_mesh", lambda *x: pytest.fail("meshed again"))
+    b = gp.build_mesh(v, site, cache=True, **kw)
+    assert b.cached and not coarse.cached
+    for m in (a, b):
+        assert np.array_equal(m.points, coarse.points) and np.array_equal(m.cells, coarse.cells)
+        assert m.cells.dtype == coarse.cells.dtype and m.notes == coarse.notes
+        for x, y in ((m.regions, coarse.regions), (m.surfaces, coarse.surfaces)):
+            assert list(x) == list(y) and all(np.array_equal(x[k], y[k]) and x[k].dtype == y[k].dtype for k in y)
+    moved = gp.NeedleSite(entries=site.entries + [0.0, 0.0, 1.0], direction=site.direction, name=site.name)
+    for other in (dict(kw, mesh_size=7.0), kw):
+        with pytest.raises(pytest.fail.Exception, match="meshed again"):
+            gp.build_mesh(v, moved if other is kw else site, cache=True, **other)
+    monkeypatch.setattr(gp, "_box_mesh", real)
+    (entry,) = (tmp_path / "cache").glob("*.npz")
+    entry.write_bytes(entry.read_bytes()[:5000])
+    assert not gp.build_mesh(v, site, cache=True, **kw).cached and gp.build_mesh(v, site, cache=True, **kw).cached
+    monkeypatch.setenv(MESH_CACHE_ENV, "0")
+    assert not gp.build_mesh(v, site, cache=True, **kw).cached
+
+
 def test_quadratic_needles_have_the_cylinder_volume(coarse):
     """Straight-edged tets inscribe a polygon (coarse: ~5 sides, ~25 % area lost); with the midside
     nodes on the cylinder the tetra10 needle volume converges to pi r^2 L (2 % at 3 mm elements)."""

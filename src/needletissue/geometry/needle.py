@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from needletissue.errors import InputError, NeedleTissueError, check_number
+from needletissue.geometry.cache import cache_key, mesh_cache_dir, read_entry, write_entry
 
 REGIONS = ("cortical_bone", "cancellous_bone", "muscle", "adipose", "needle_1", "needle_2", "clamp")
 
@@ -225,34 +226,10 @@ class NeedleMeshInfo:
     cached: bool = False                 # read from the mesh cache (mesh_cache_dir), gmsh not run
 
 
-MESH_CACHE_ENV = "NEEDLETISSUE_MESH_CACHE"   # "0" / "off": no mesh cache; a folder: the cache there
-
-
-def mesh_cache_dir() -> Path | None:
-    """Where `mesh_needle_model(cache=True)` keeps meshes: $NEEDLETISSUE_MESH_CACHE, else
-    $XDG_CACHE_HOME/needletissue/meshes (~/.cache/...); None when that variable is 0/off/no/false."""
-    import os
-
-    env = os.environ.get(MESH_CACHE_ENV, "").strip()
-    if env.lower() in ("0", "off", "no", "false"):
-        return None
-    if env:
-        return Path(env).expanduser()
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "needletissue" / "meshes"
-
-
 def _cache_key(geometry: NeedleGeometry, order: int) -> str:
-    """Every input of the mesh: the geometry, the order, gmsh's version and the meshing code itself
-    (this module and the gmsh set-up: a change to either makes new meshes)."""
-    import hashlib
-    import json
-    from importlib.metadata import version
-
-    h = hashlib.sha256(json.dumps({"geometry": geometry.to_dict(), "order": order, "gmsh": version("gmsh")},
-                                  sort_keys=True).encode())
-    for f in ("needle.py", "gmsh_init.py"):
-        h.update((Path(__file__).parent / f).read_bytes())
-    return h.hexdigest()[:32]
+    """Every input of the mesh: the geometry, the order (and gmsh's version), this module and the gmsh set-up."""
+    return cache_key({"geometry": geometry.to_dict(), "order": order},
+                     tuple(Path(__file__).parent / f for f in ("needle.py", "gmsh_init.py")))
 
 
 def mesh_needle_model(geometry: NeedleGeometry, path: str | Path, *, order: int = 1,
@@ -278,50 +255,25 @@ def mesh_needle_model(geometry: NeedleGeometry, path: str | Path, *, order: int 
 
 
 def _from_cache(folder: Path, key: str, geometry: NeedleGeometry, path: str | Path) -> NeedleMeshInfo | None:
-    import json
-
-    try:  # the .json is written after the .msh; a .msh that does not match its checksum is a miss
-        facts = json.loads((folder / f"{key}.json").read_text())
-        data = (folder / f"{key}.msh").read_bytes()
-        if _sha256(data) != facts["msh_sha256"]:
-            return None
+    entry = read_entry(folder, key, ".msh")
+    if entry is None:
+        return None
+    data, facts = entry
+    try:
         info = NeedleMeshInfo(path=Path(path), geometry=geometry, nodes=facts["nodes"], tetrahedra=facts["tetrahedra"],
                               region_tetrahedra=facts["region_tetrahedra"], min_quality=facts["min_quality"],
                               mesh_time_s=0.0, cached=True)
-        info.path.parent.mkdir(parents=True, exist_ok=True)
-        info.path.write_bytes(data)
-    except (OSError, ValueError, KeyError, TypeError):
+    except KeyError:
         return None
+    info.path.parent.mkdir(parents=True, exist_ok=True)
+    info.path.write_bytes(data)
     return info
 
 
 def _to_cache(folder: Path, key: str, info: NeedleMeshInfo) -> None:
-    """Best effort (a read-only home must not fail the run): each file written beside and renamed,
-    opened normally so it follows the umask (mkstemp would make it 0600)."""
-    import json
-    import os
-
-    try:
-        data = Path(info.path).read_bytes()
-        facts = {"nodes": info.nodes, "tetrahedra": info.tetrahedra, "region_tetrahedra": info.region_tetrahedra,
-                 "min_quality": info.min_quality, "geometry": info.geometry.to_dict(), "msh_sha256": _sha256(data)}
-        folder.mkdir(parents=True, exist_ok=True)
-        for name, write in ((f"{key}.msh", lambda f: Path(f).write_bytes(data)),
-                            (f"{key}.json", lambda f: Path(f).write_text(json.dumps(facts)))):
-            tmp = folder / f".tmp-{os.getpid()}-{name}"
-            try:
-                write(tmp)
-                os.replace(tmp, folder / name)
-            finally:
-                tmp.unlink(missing_ok=True)
-    except OSError:
-        pass
-
-
-def _sha256(data: bytes) -> str:
-    import hashlib
-
-    return hashlib.sha256(data).hexdigest()
+    facts = {"nodes": info.nodes, "tetrahedra": info.tetrahedra, "region_tetrahedra": info.region_tetrahedra,
+             "min_quality": info.min_quality, "geometry": info.geometry.to_dict()}
+    write_entry(folder, key, ".msh", Path(info.path).read_bytes(), facts)
 
 
 def _mesh(geometry: NeedleGeometry, path: str | Path, *, order: int, verbose: bool, isolate: bool) -> NeedleMeshInfo:

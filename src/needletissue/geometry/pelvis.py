@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from needletissue.errors import InputError, check_number
+from needletissue.geometry.cache import cache_key, mesh_cache_dir, read_entry, write_entry
 from needletissue.geometry.tetmesh import unique_rows
 
 # Tissue ids of a LabelVolume (0 = void: air, viscera, anything not modelled).
@@ -494,6 +495,7 @@ class PelvisMesh:
     notes: list = field(default_factory=list)
     info: dict = field(default_factory=dict)  # how the mesh was built (smooth route: mesh_info)
     label_volumes: dict | None = None  # region -> voxel volume (mm^3) of the label map it was meshed from
+    cached: bool = False  # read from the mesh cache (geometry.cache), not meshed
 
     def to_meshio(self):
         """meshio mesh with gmsh physical groups named as the regions and surfaces."""
@@ -546,7 +548,8 @@ def _needles_and_clamp(site: NeedleSite, paths):
 
 def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needle_size: float | None = None,
                far_size: float | None = None, cortical_thickness: float = 1.5, refine_radius: float = 35.0,
-               sacroiliac_gap: float | None = None, smoothing: float = 0.7, threads: int = 1) -> PelvisMesh:
+               sacroiliac_gap: float | None = None, smoothing: float = 0.7, threads: int = 1,
+               cache: bool = False) -> PelvisMesh:
     """Conforming linear tet mesh of the cropped anatomy with two needles and the clamp.
 
     mesh_size: soft-tissue element size next to the needles, mm (the paper: 3 mm); needle_size default
@@ -554,9 +557,9 @@ def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needl
     `refine_radius` mm from the needles. Hip-bone tets whose centroid lies less than
     max(cortical_thickness, half the tet's longest edge) below the bone surface are cortical bone
     (the 3 mm CT does not resolve the cortex; a one-element shell where elements are coarse).
+    With cache, a mesh made before from the same label volume, site and sizes is read from
+    geometry.cache.mesh_cache_dir() instead of meshing again (paper scale: ~85 s of gmsh and labelling).
     """
-    import gmsh
-    from scipy import ndimage
 
     check_number("mesh_size", mesh_size, ge=0.5, le=20)
     needle_size = 2 * mesh_size / 3 if needle_size is None else check_number("needle_size", needle_size, ge=0.2, le=10)
@@ -564,10 +567,76 @@ def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needl
     check_number("cortical_thickness", cortical_thickness, gt=0, le=10)
     sacroiliac_gap = 1.5 * vol.spacing if sacroiliac_gap is None else sacroiliac_gap
     paths = needle_paths(vol, site)
-    r = site.diameter / 2
     frame, c_bottom, axes, bar_len = _needles_and_clamp(site, paths)
-    h_clamp, w_clamp = site.clamp_size
+    notes = list(vol.notes) + [
+        f"tissue tets: argmax of Gaussian-smoothed (sigma {smoothing} voxel) label indicators at the centroid",
+        f"hip cortical shell: centroid depth < max({cortical_thickness} mm, half the longest edge)",
+    ]
+    args = (vol, site, frame, c_bottom, axes, bar_len, mesh_size, needle_size, far_size, cortical_thickness,
+            refine_radius, sacroiliac_gap, smoothing, threads)
+    folder = mesh_cache_dir() if cache else None
+    key = _cache_key(*args) if folder is not None else None
+    arrays = _from_cache(folder, key) if folder is not None else None
+    cached = arrays is not None
+    if not cached:
+        arrays = _box_mesh(*args)
+        if folder is not None:
+            _to_cache(folder, key, *arrays)
+    return PelvisMesh(*arrays, site, paths, frame, axes, notes, cached=cached)
 
+
+def _cache_key(vol, site, *rest) -> str:
+    """Every input of the box mesh: the label volume's voxels and grid, the site, the sizes and options,
+    and the meshing code (this module, the gmsh set-up, tetmesh's helpers)."""
+    import hashlib
+    from importlib.metadata import version
+
+    labels = np.ascontiguousarray(vol.labels)
+    inputs = {"labels": hashlib.sha256(labels.tobytes()).hexdigest(), "shape": labels.shape, "dtype": str(labels.dtype),
+              "origin": np.asarray(vol.origin, float).tolist(), "spacing": float(vol.spacing),
+              "site": [np.asarray(getattr(site, k), float).tolist() for k in
+                       ("entries", "direction", "diameter", "depth_in_bone", "clamp_gap", "clamp_size", "clamp_overhang")],
+              "options": [np.asarray(x, float).tolist() for x in rest],
+              "scipy": version("scipy")}
+    here = Path(__file__).parent
+    return cache_key(inputs, (here / "pelvis.py", here / "gmsh_init.py", here / "tetmesh.py"))
+
+
+def _to_cache(folder: Path, key: str, pts, tets, regions: dict, surfaces: dict) -> None:
+    import io
+
+    buf = io.BytesIO()
+    np.savez(buf, points=pts, cells=tets, **{f"region {k}": v for k, v in regions.items()},
+             **{f"surface {k}": v for k, v in surfaces.items()})
+    write_entry(folder, key, ".npz", buf.getvalue(),
+                {"regions": list(regions), "surfaces": list(surfaces), "tetrahedra": int(len(tets))})
+
+
+def _from_cache(folder: Path, key: str):
+    """(points, tets, regions, surfaces) of a cached box mesh, or None (a miss)."""
+    import io
+
+    entry = read_entry(folder, key, ".npz")
+    if entry is None:
+        return None
+    data, facts = entry
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            return (z["points"], z["cells"], {k: z[f"region {k}"] for k in facts["regions"]},
+                    {k: z[f"surface {k}"] for k in facts["surfaces"]})
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _box_mesh(vol, site, frame, c_bottom, axes, bar_len, mesh_size, needle_size, far_size, cortical_thickness,
+              refine_radius, sacroiliac_gap, smoothing, threads):
+    """gmsh's mesh of the crop box with the needles and the clamp, tissue by label, the hip cortex, the
+    largest body and its surfaces: (points, tets, regions, surfaces)."""
+    import gmsh
+    from scipy import ndimage
+
+    r = site.diameter / 2
+    h_clamp, w_clamp = site.clamp_size
     lo, hi = vol.bounds
     from needletissue.geometry.gmsh_init import initialize  # keeps the SIGTERM handler
 
@@ -672,11 +741,7 @@ def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needl
     regions = {n: np.nonzero(names == n)[0] for n in order if np.any(names == n)}
 
     surfaces = _surfaces(pts, tets, names, vol, frame, c_bottom, w_clamp, sacroiliac_gap)
-    notes = list(vol.notes) + [
-        f"tissue tets: argmax of Gaussian-smoothed (sigma {smoothing} voxel) label indicators at the centroid",
-        f"hip cortical shell: centroid depth < max({cortical_thickness} mm, half the longest edge)",
-    ]
-    return PelvisMesh(pts, tets, regions, surfaces, site, paths, frame, axes, notes)
+    return pts, tets, regions, surfaces
 
 
 _FACES = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])

@@ -331,7 +331,7 @@ def build(config: PelvisConfig):
         return vol, gp.build_mesh_smooth(seg, vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size)
     mesh = gp.build_mesh(vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size,
                          far_size=config.far_size, cortical_thickness=config.cortical_thickness,
-                         refine_radius=config.refine_radius)
+                         refine_radius=config.refine_radius, cache=True)   # $NEEDLETISSUE_MESH_CACHE=0: off
     return vol, mesh
 
 
@@ -539,7 +539,8 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
               "cells_by_region": {k: int(len(v)) for k, v in qm.regions.items()},
               "dofs": int(model.ndof), "min_quality": float(tm.quality().min()),
               "region_tags": {k: int(v) for k, v in fe[-1].region_tags.items()},
-              "quality": mesh_quality(pm, vol), "mesher": config.mesher, "mesh_info": pm.info},
+              "quality": mesh_quality(pm, vol), "mesher": config.mesher, "mesh_info": pm.info,
+              "cached": pm.cached},
         wall_time_s=time.perf_counter() - t0,
         results=loads,
         ranking=ranking,

@@ -1,0 +1,74 @@
+"""Mesh cache: a mesh made before from the same inputs, read back instead of meshing again.
+
+One folder for every mesher that uses it (the needle model's gmsh mesh, the anatomical model's box mesh):
+$NEEDLETISSUE_MESH_CACHE, else $XDG_CACHE_HOME/needletissue/meshes (~/.cache/...); "0"/"off" turns it off.
+An entry is `<key><suffix>` (the mesh's bytes) and `<key>.json` (facts, with the bytes' SHA-256), the key a
+hash of every input of the mesh, gmsh's version and the meshing code's own bytes. Delete the folder to
+clear it. Best effort both ways: an unreadable or damaged entry is a miss, a cache that cannot be written
+does not fail the run.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+MESH_CACHE_ENV = "NEEDLETISSUE_MESH_CACHE"   # "0" / "off": no mesh cache; a folder: the cache there
+
+
+def mesh_cache_dir() -> Path | None:
+    """The cache folder: $NEEDLETISSUE_MESH_CACHE, else $XDG_CACHE_HOME/needletissue/meshes (~/.cache/...);
+    None when that variable is 0/off/no/false."""
+    env = os.environ.get(MESH_CACHE_ENV, "").strip()
+    if env.lower() in ("0", "off", "no", "false"):
+        return None
+    if env:
+        return Path(env).expanduser()
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "needletissue" / "meshes"
+
+
+def cache_key(inputs: dict, code: tuple[Path, ...]) -> str:
+    """Hash of the mesh's inputs (JSON-able), gmsh's version and the bytes of the meshing code `code`
+    (a change to either makes new meshes)."""
+    from importlib.metadata import version
+
+    h = hashlib.sha256(json.dumps({**inputs, "gmsh": version("gmsh")}, sort_keys=True).encode())
+    for f in code:
+        h.update(Path(f).read_bytes())
+    return h.hexdigest()[:32]
+
+
+def sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def read_entry(folder: Path, key: str, suffix: str) -> tuple[bytes, dict] | None:
+    """(mesh bytes, facts) of the entry `key`, or None: absent, unreadable, or bytes that do not match
+    their checksum (the .json is written after the data, so a torn write is a miss)."""
+    try:
+        facts = json.loads((folder / f"{key}.json").read_text())
+        data = (folder / f"{key}{suffix}").read_bytes()
+        if sha256(data) != facts["sha256"]:
+            return None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return data, facts
+
+
+def write_entry(folder: Path, key: str, suffix: str, data: bytes, facts: dict) -> None:
+    """Store an entry. Each file written beside and renamed, opened normally so it follows the umask
+    (mkstemp would make it 0600); an OSError (read-only home, full disk) is ignored."""
+    facts = {**facts, "sha256": sha256(data)}
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, payload in ((f"{key}{suffix}", data), (f"{key}.json", json.dumps(facts).encode())):
+            tmp = folder / f".tmp-{os.getpid()}-{name}"
+            try:
+                tmp.write_bytes(payload)
+                os.replace(tmp, folder / name)
+            finally:
+                tmp.unlink(missing_ok=True)
+    except OSError:
+        pass
