@@ -161,6 +161,34 @@ def test_metis_ordering_is_a_permutation_that_pardiso_uses_for_the_same_solution
     assert 0 < fill["metis"] <= fill["mkl"]
 
 
+def test_metis_ordering_of_a_pattern_met_before_comes_from_the_cache(tmp_path, monkeypatch):
+    """The ordering of a sparsity pattern met before is read from the mesh cache, the same permutation
+    METIS computes (pymetis not called); another pattern is a miss; a damaged entry is a miss, rewritten."""
+    import pymetis
+    import scipy.sparse as sp
+
+    from needletissue.cache import MESH_CACHE_ENV
+
+    monkeypatch.setenv(MESH_CACHE_ENV, str(tmp_path))
+    mesh = TaggedMesh.box((30, 4, 4), (12, 3, 3), origin=(0, -2, -2), region="needle")
+    upper = sp.triu(FEModel(mesh, {"needle": "needle"}).bodies["needle"].assemble.matrix(), format="csr")
+    monkeypatch.setenv(MESH_CACHE_ENV, "0")
+    fresh = linsolve.nested_dissection(upper)
+    monkeypatch.setenv(MESH_CACHE_ENV, str(tmp_path))
+    assert np.array_equal(linsolve.nested_dissection(upper), fresh)   # a miss: computed and stored
+    real = pymetis.nested_dissection
+    monkeypatch.setattr(pymetis, "nested_dissection", lambda *a, **k: pytest.fail("METIS ran"))
+    hit = linsolve.nested_dissection(upper.copy())                     # the same pattern, another matrix
+    assert np.array_equal(hit, fresh) and hit.dtype == np.int32
+    with pytest.raises(pytest.fail.Exception, match="METIS ran"):
+        linsolve.nested_dissection(upper[:-3, :-3].tocsr())
+    monkeypatch.setattr(pymetis, "nested_dissection", real)
+    (entry,) = tmp_path.glob("*.perm.npy")
+    entry.write_bytes(entry.read_bytes()[:100])
+    assert np.array_equal(linsolve.nested_dissection(upper), fresh)
+    assert np.array_equal(np.load(entry), fresh)                         # rewritten whole
+
+
 @pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
 def test_mkl_reproducibility_only_on_request_before_mkl_loads():
     """MKL_CBWR=AUTO when a contact run asks before MKL is loaded (Pardiso on two threads: the same bits in

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from needletissue.errors import InputError
-from needletissue.geometry.cache import MESH_CACHE_ENV, mesh_cache_dir
+from needletissue.cache import MESH_CACHE_ENV, mesh_cache_dir
 from needletissue.geometry.needle import REGIONS, SURFACES, MeshError, NeedleGeometry, mesh_needle_model
 
 COARSE = dict(needle_mesh_size=1.5, mesh_size=4.0, far_mesh_size=20.0, half_width=40.0, free_length=80.0)

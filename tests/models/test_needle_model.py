@@ -15,7 +15,7 @@ from needletissue.cli import app
 from needletissue.fem.solvelog import SOLVE_LOG, read_log
 from needletissue.models.needle import NeedleModelConfig, run_needle_model
 from needletissue.geometry.needle import NeedleGeometry
-from needletissue.geometry.cache import MESH_CACHE_ENV
+from needletissue.cache import MESH_CACHE_ENV
 from needletissue.materials import get
 
 COARSE_CLI = ["--needle-mesh-size", "2.5", "--mesh-size", "8", "--far-mesh-size", "30"]

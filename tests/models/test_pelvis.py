@@ -227,7 +227,7 @@ def test_mesh_cache_returns_the_same_mesh_without_gmsh_and_keys_every_input(coar
                                                                            monkeypatch):
     """A cached box mesh is the meshed one array for array (dtypes, region and surface order), gmsh not run;
     another size or site is a miss, so is a damaged entry (rewritten); the cache follows the umask."""
-    from needletissue.geometry.cache import MESH_CACHE_ENV
+    from needletissue.cache import MESH_CACHE_ENV
 
     monkeypatch.setenv(MESH_CACHE_ENV, str(tmp_path / "cache"))
     v = gp.crop_to_site(vol, site)

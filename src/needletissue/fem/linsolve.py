@@ -186,11 +186,30 @@ ORDERING = "metis"
 def nested_dissection(M) -> np.ndarray | None:
     """METIS 5's nested-dissection ordering of the symmetric pattern of M (CSR; an upper triangle or the
     whole matrix): perm[k] = the row that goes to position k (int32), or None for a matrix without
-    off-diagonal entries (nothing to order)."""
+    off-diagonal entries (nothing to order). An ordering of a pattern met before (the same mesh and supports)
+    is read from the mesh cache (needletissue.cache; METIS is deterministic: the same ordering)."""
+    import io
+    from importlib.metadata import version
+
     import pymetis
     import scipy.sparse as sp
 
+    from needletissue.cache import cache_key, mesh_cache_dir, read_entry, sha256, write_entry
+
     n = M.shape[0]
+    folder = mesh_cache_dir()
+    if folder is not None:  # keyed by M's own pattern: the graph below is a function of it
+        key = cache_key({"pattern": sha256(np.ascontiguousarray(M.indptr, np.int64).tobytes()
+                                           + np.ascontiguousarray(M.indices, np.int64).tobytes()),
+                         "shape": list(M.shape), "pymetis": version("pymetis")})
+        entry = read_entry(folder, key, ".perm.npy")
+        if entry is not None:
+            try:
+                perm = np.load(io.BytesIO(entry[0]), allow_pickle=False)
+                if perm.shape == (n,) and perm.dtype == np.int32:
+                    return perm
+            except (OSError, ValueError):
+                pass
     G = sp.csr_matrix((np.ones(M.nnz, np.int8), M.indices, M.indptr), shape=M.shape)
     G = (G + G.T).tocsr()
     G.setdiag(0)
@@ -201,6 +220,10 @@ def nested_dissection(M) -> np.ndarray | None:
     perm = np.asarray(perm, np.int32)
     if perm.shape != (n,):
         raise RuntimeError(f"fem.linsolve: METIS returned an ordering of {perm.size} rows for {n}")
+    if folder is not None:
+        buf = io.BytesIO()
+        np.save(buf, perm)
+        write_entry(folder, key, ".perm.npy", buf.getvalue(), {"rows": n, "graph_nonzeros": int(G.nnz)})
     return perm
 
 

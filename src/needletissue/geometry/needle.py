@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from needletissue.errors import InputError, NeedleTissueError, check_number
-from needletissue.geometry.cache import cache_key, mesh_cache_dir, read_entry, write_entry
+from needletissue.cache import cache_key, mesh_cache_dir, read_entry, write_entry
 
 REGIONS = ("cortical_bone", "cancellous_bone", "muscle", "adipose", "needle_1", "needle_2", "clamp")
 
@@ -228,7 +228,9 @@ class NeedleMeshInfo:
 
 def _cache_key(geometry: NeedleGeometry, order: int) -> str:
     """Every input of the mesh: the geometry, the order (and gmsh's version), this module and the gmsh set-up."""
-    return cache_key({"geometry": geometry.to_dict(), "order": order},
+    from importlib.metadata import version
+
+    return cache_key({"geometry": geometry.to_dict(), "order": order, "gmsh": version("gmsh")},
                      tuple(Path(__file__).parent / f for f in ("needle.py", "gmsh_init.py")))
 
 

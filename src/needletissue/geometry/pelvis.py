@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from needletissue.errors import InputError, check_number
-from needletissue.geometry.cache import cache_key, mesh_cache_dir, read_entry, write_entry
+from needletissue.cache import cache_key, mesh_cache_dir, read_entry, write_entry
 from needletissue.geometry.tetmesh import unique_rows
 
 # Tissue ids of a LabelVolume (0 = void: air, viscera, anything not modelled).
@@ -495,7 +495,7 @@ class PelvisMesh:
     notes: list = field(default_factory=list)
     info: dict = field(default_factory=dict)  # how the mesh was built (smooth route: mesh_info)
     label_volumes: dict | None = None  # region -> voxel volume (mm^3) of the label map it was meshed from
-    cached: bool = False  # read from the mesh cache (geometry.cache), not meshed
+    cached: bool = False  # read from the mesh cache (needletissue.cache), not meshed
 
     def to_meshio(self):
         """meshio mesh with gmsh physical groups named as the regions and surfaces."""
@@ -558,7 +558,7 @@ def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needl
     max(cortical_thickness, half the tet's longest edge) below the bone surface are cortical bone
     (the 3 mm CT does not resolve the cortex; a one-element shell where elements are coarse).
     With cache, a mesh made before from the same label volume, site and sizes is read from
-    geometry.cache.mesh_cache_dir() instead of meshing again (paper scale: ~85 s of gmsh and labelling).
+    needletissue.cache.mesh_cache_dir() instead of meshing again (paper scale: ~85 s of gmsh and labelling).
     """
 
     check_number("mesh_size", mesh_size, ge=0.5, le=20)
@@ -597,7 +597,7 @@ def _cache_key(vol, site, *rest) -> str:
               "site": [np.asarray(getattr(site, k), float).tolist() for k in
                        ("entries", "direction", "diameter", "depth_in_bone", "clamp_gap", "clamp_size", "clamp_overhang")],
               "options": [np.asarray(x, float).tolist() for x in rest],
-              "scipy": version("scipy")}
+              "scipy": version("scipy"), "gmsh": version("gmsh")}
     here = Path(__file__).parent
     return cache_key(inputs, (here / "pelvis.py", here / "gmsh_init.py", here / "tetmesh.py"))
 

@@ -1,9 +1,11 @@
-"""Mesh cache: a mesh made before from the same inputs, read back instead of meshing again.
+"""Mesh cache: a mesh made before from the same inputs, read back instead of meshing again, and the
+fill-reducing ordering of a sparsity pattern met before (fem.linsolve.nested_dissection).
 
-One folder for every mesher that uses it (the needle model's gmsh mesh, the anatomical model's box mesh):
+One folder for everything that uses it (the needle model's gmsh mesh, the anatomical model's box mesh, METIS's
+orderings):
 $NEEDLETISSUE_MESH_CACHE, else $XDG_CACHE_HOME/needletissue/meshes (~/.cache/...); "0"/"off" turns it off.
-An entry is `<key><suffix>` (the mesh's bytes) and `<key>.json` (facts, with the bytes' SHA-256), the key a
-hash of every input of the mesh, gmsh's version and the meshing code's own bytes. Delete the folder to
+An entry is `<key><suffix>` (the bytes) and `<key>.json` (facts, with the bytes' SHA-256), the key a hash of
+every input, the versions of the libraries that make it and the code's own bytes. Delete the folder to
 clear it. Best effort both ways: an unreadable or damaged entry is a miss, a cache that cannot be written
 does not fail the run.
 """
@@ -29,12 +31,10 @@ def mesh_cache_dir() -> Path | None:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "needletissue" / "meshes"
 
 
-def cache_key(inputs: dict, code: tuple[Path, ...]) -> str:
-    """Hash of the mesh's inputs (JSON-able), gmsh's version and the bytes of the meshing code `code`
-    (a change to either makes new meshes)."""
-    from importlib.metadata import version
-
-    h = hashlib.sha256(json.dumps({**inputs, "gmsh": version("gmsh")}, sort_keys=True).encode())
+def cache_key(inputs: dict, code: tuple[Path, ...] = ()) -> str:
+    """Hash of every input of what is cached (JSON-able: the versions of the libraries that make it included)
+    and of the bytes of the code that makes it (a change to either makes new entries)."""
+    h = hashlib.sha256(json.dumps(inputs, sort_keys=True).encode())
     for f in code:
         h.update(Path(f).read_bytes())
     return h.hexdigest()[:32]
