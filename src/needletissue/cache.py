@@ -45,7 +45,7 @@ def sha256(data: bytes) -> str:
 
 
 def read_entry(folder: Path, key: str, suffix: str) -> tuple[bytes, dict] | None:
-    """(mesh bytes, facts) of the entry `key`, or None: absent, unreadable, or bytes that do not match
+    """(bytes, facts) of the entry `key`, or None: absent, unreadable, or bytes that do not match
     their checksum (the .json is written after the data, so a torn write is a miss)."""
     try:
         facts = json.loads((folder / f"{key}.json").read_text())

@@ -179,7 +179,7 @@ def make(name: str, points: np.ndarray | None = None, dof1: np.ndarray | None = 
 # 2 = 2), as LDL^T and LU (contact) always do.
 # On the default `fe needle` tangent (72,348 dofs) Pardiso's own gives 40.5 M factor nonzeros and 49.8 GFlop
 # per Cholesky, METIS 5's 37.1 M and 39.3 GFlop: factorisation 1.9 -> 1.3 s on two threads, analysis
-# 0.8 -> 0.3 s (plus ~1 s of ordering, once per pattern) (docs/bench.md, "Pardiso's ordering: METIS 5").
+# 0.8 -> 0.3 s (plus ~1 s of ordering, once per pattern, kept in the mesh cache) (docs/bench.md, "Pardiso's ordering: METIS 5").
 ORDERING = "metis"
 
 
@@ -188,19 +188,22 @@ def nested_dissection(M) -> np.ndarray | None:
     whole matrix): perm[k] = the row that goes to position k (int32), or None for a matrix without
     off-diagonal entries (nothing to order). An ordering of a pattern met before (the same mesh and supports)
     is read from the mesh cache (needletissue.cache; METIS is deterministic: the same ordering)."""
+    import hashlib
     import io
     from importlib.metadata import version
 
     import pymetis
     import scipy.sparse as sp
 
-    from needletissue.cache import cache_key, mesh_cache_dir, read_entry, sha256, write_entry
+    from needletissue.cache import cache_key, mesh_cache_dir, read_entry, write_entry
 
     n = M.shape[0]
     folder = mesh_cache_dir()
     if folder is not None:  # keyed by M's own pattern: the graph below is a function of it
-        key = cache_key({"pattern": sha256(np.ascontiguousarray(M.indptr, np.int64).tobytes()
-                                           + np.ascontiguousarray(M.indices, np.int64).tobytes()),
+        h = hashlib.sha256()
+        for a in (M.indptr, M.indices):   # their bytes as they are (no copy): the dtypes go into the key
+            h.update(memoryview(np.ascontiguousarray(a)).cast("B"))
+        key = cache_key({"pattern": h.hexdigest(), "dtypes": [str(M.indptr.dtype), str(M.indices.dtype)],
                          "shape": list(M.shape), "pymetis": version("pymetis")})
         entry = read_entry(folder, key, ".perm.npy")
         if entry is not None:

@@ -560,7 +560,6 @@ def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needl
     With cache, a mesh made before from the same label volume, site and sizes is read from
     needletissue.cache.mesh_cache_dir() instead of meshing again (paper scale: ~85 s of gmsh and labelling).
     """
-
     check_number("mesh_size", mesh_size, ge=0.5, le=20)
     needle_size = 2 * mesh_size / 3 if needle_size is None else check_number("needle_size", needle_size, ge=0.2, le=10)
     far_size = 4 * mesh_size if far_size is None else check_number("far_size", far_size, ge=mesh_size, le=60)
