@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-# The needle model's mesh cache (needletissue.cache: the needle and anatomical meshes, the orderings) off for the tests, in this process and the
+# The mesh cache (needletissue.cache: the needle and anatomical meshes, METIS's orderings) off for the tests, in this process and the
 # CLI processes they start: each test meshes as before, whatever the user's cache holds (a test that
 # stops `fe needle` while gmsh runs needs gmsh to run). The cache's own test turns it on in a tmp folder.
 os.environ["NEEDLETISSUE_MESH_CACHE"] = "0"

@@ -9,10 +9,11 @@ import pytest
 import needletissue
 
 ROOT = Path(needletissue.__file__).parent
-BASE = {"errors", "runinfo", "cells"}  # stdlib-level utilities: no package imports above them
+BASE = {"errors", "runinfo", "cells", "cache"}  # stdlib-level utilities: no package imports above them
 ALLOWED = {
     "errors": set(),
     "cells": set(),
+    "cache": set(),
     "configs": set(),  # package data (default.toml)
     "runinfo": {"errors"},
     "materials": BASE,
