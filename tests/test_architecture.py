@@ -13,7 +13,7 @@ BASE = {"errors", "runinfo", "cells", "cache"}  # stdlib-level utilities: no pac
 ALLOWED = {
     "errors": set(),
     "cells": set(),
-    "cache": set(),
+    "cache": {"errors", "runinfo"},
     "configs": set(),  # package data (default.toml)
     "runinfo": {"errors"},
     "materials": BASE,

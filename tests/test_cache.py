@@ -13,7 +13,7 @@ def test_an_entry_reads_back_and_every_damage_is_a_miss(tmp_path):
     write_entry(tmp_path, "k", ".bin", b"\x00mesh bytes", {"nodes": 3})
     data, facts = read_entry(tmp_path, "k", ".bin")
     assert data == b"\x00mesh bytes" and facts["nodes"] == 3
-    assert not list(tmp_path.glob(".tmp-*"))
+    assert not list(tmp_path.glob(".*"))  # no temporary file left
     assert read_entry(tmp_path, "other", ".bin") is None                # absent
     (tmp_path / "k.bin").write_bytes(b"\x00mesh bytez")                  # torn or changed: checksum
     assert read_entry(tmp_path, "k", ".bin") is None

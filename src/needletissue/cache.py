@@ -17,6 +17,11 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
+
+from needletissue.errors import InputError
+from needletissue.runinfo import write_atomic
+
 MESH_CACHE_ENV = "NEEDLETISSUE_MESH_CACHE"   # "0" / "off": no mesh cache; a folder: the cache there
 
 
@@ -40,8 +45,12 @@ def cache_key(inputs: dict, code: tuple[Path, ...] = ()) -> str:
     return h.hexdigest()[:32]
 
 
-def sha256(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
+def sha256(*chunks) -> str:
+    """SHA-256 of bytes and NumPy arrays in turn (an array's memory as it is: no copy, its dtype not included)."""
+    h = hashlib.sha256()
+    for c in chunks:
+        h.update(memoryview(np.ascontiguousarray(c)).cast("B") if isinstance(c, np.ndarray) else c)
+    return h.hexdigest()
 
 
 def read_entry(folder: Path, key: str, suffix: str) -> tuple[bytes, dict] | None:
@@ -58,17 +67,10 @@ def read_entry(folder: Path, key: str, suffix: str) -> tuple[bytes, dict] | None
 
 
 def write_entry(folder: Path, key: str, suffix: str, data: bytes, facts: dict) -> None:
-    """Store an entry. Each file written beside and renamed, opened normally so it follows the umask
-    (mkstemp would make it 0600); an OSError (read-only home, full disk) is ignored."""
-    facts = {**facts, "sha256": sha256(data)}
+    """Store an entry, each file by runinfo.write_atomic (never half a file, mode from the umask), the data
+    first; a folder that cannot be written (read-only home, full disk) is ignored."""
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        for name, payload in ((f"{key}{suffix}", data), (f"{key}.json", json.dumps(facts).encode())):
-            tmp = folder / f".tmp-{os.getpid()}-{name}"
-            try:
-                tmp.write_bytes(payload)
-                os.replace(tmp, folder / name)
-            finally:
-                tmp.unlink(missing_ok=True)
-    except OSError:
+        write_atomic(folder / f"{key}{suffix}", data)
+        write_atomic(folder / f"{key}.json", json.dumps({**facts, "sha256": sha256(data)}))
+    except (OSError, InputError):
         pass

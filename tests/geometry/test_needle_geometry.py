@@ -288,7 +288,7 @@ def test_mesh_cache_returns_the_same_mesh_without_gmsh_and_keys_every_input(tmp_
         os.umask(old)
     assert not a.cached and len(list((tmp_path / "cache").glob("*.msh"))) == 1
     assert {f.stat().st_mode & 0o777 for f in (tmp_path / "cache").iterdir()} == {0o640}  # the umask's
-    assert not list((tmp_path / "cache").glob(".tmp-*"))
+    assert not list((tmp_path / "cache").glob(".*"))  # no temporary file left
 
     def no_gmsh(*args, **kwargs):
         raise RuntimeError("gmsh ran")

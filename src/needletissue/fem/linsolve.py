@@ -188,22 +188,18 @@ def nested_dissection(M) -> np.ndarray | None:
     whole matrix): perm[k] = the row that goes to position k (int32), or None for a matrix without
     off-diagonal entries (nothing to order). An ordering of a pattern met before (the same mesh and supports)
     is read from the mesh cache (needletissue.cache; METIS is deterministic: the same ordering)."""
-    import hashlib
     import io
     from importlib.metadata import version
 
     import pymetis
     import scipy.sparse as sp
 
-    from needletissue.cache import cache_key, mesh_cache_dir, read_entry, write_entry
+    from needletissue.cache import cache_key, mesh_cache_dir, read_entry, sha256, write_entry
 
     n = M.shape[0]
     folder = mesh_cache_dir()
     if folder is not None:  # keyed by M's own pattern: the graph below is a function of it
-        h = hashlib.sha256()
-        for a in (M.indptr, M.indices):   # their bytes as they are (no copy): the dtypes go into the key
-            h.update(memoryview(np.ascontiguousarray(a)).cast("B"))
-        key = cache_key({"pattern": h.hexdigest(), "dtypes": [str(M.indptr.dtype), str(M.indices.dtype)],
+        key = cache_key({"pattern": sha256(M.indptr, M.indices), "dtypes": [str(M.indptr.dtype), str(M.indices.dtype)],
                          "shape": list(M.shape), "pymetis": version("pymetis")})
         entry = read_entry(folder, key, ".perm.npy")
         if entry is not None:

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from needletissue.errors import InputError, check_number
-from needletissue.cache import cache_key, mesh_cache_dir, read_entry, write_entry
+from needletissue.cache import cache_key, mesh_cache_dir, read_entry, sha256, write_entry
 from needletissue.geometry.tetmesh import unique_rows
 
 # Tissue ids of a LabelVolume (0 = void: air, viscera, anything not modelled).
@@ -587,11 +587,10 @@ def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needl
 def _cache_key(vol, site, *rest) -> str:
     """Every input of the box mesh: the label volume's voxels and grid, the site, the sizes and options,
     and the meshing code (this module, the gmsh set-up, tetmesh's helpers)."""
-    import hashlib
     from importlib.metadata import version
 
-    labels = np.ascontiguousarray(vol.labels)
-    inputs = {"labels": hashlib.sha256(labels.tobytes()).hexdigest(), "shape": labels.shape, "dtype": str(labels.dtype),
+    labels = vol.labels
+    inputs = {"labels": sha256(labels), "shape": labels.shape, "dtype": str(labels.dtype),
               "origin": np.asarray(vol.origin, float).tolist(), "spacing": float(vol.spacing),
               "site": [np.asarray(getattr(site, k), float).tolist() for k in
                        ("entries", "direction", "diameter", "depth_in_bone", "clamp_gap", "clamp_size", "clamp_overhang")],
