@@ -362,3 +362,31 @@ def test_a_kept_double_factor_keeps_its_matrix_when_the_caller_drops_the_values(
     np.testing.assert_allclose(A @ x, b, rtol=0, atol=1e-8 * np.abs(b).max())
     np.testing.assert_allclose(s.resolve(b), x, rtol=0, atol=1e-12 * np.abs(x).max())
     s.close()
+
+
+@pytest.mark.parametrize("arena_max", [None, "8"])
+def test_the_assembly_threads_allocate_from_the_main_heap(arena_max):
+    """needletissue sets glibc's M_ARENA_MAX to 1 on import (docs/bench.md, "One heap for the assembly threads"):
+    after a solve assembled on two threads, malloc_stats() lists only the main heap; a MALLOC_ARENA_MAX the user
+    set is left alone, and then the threads get heaps of their own (what the setting removes)."""
+    import os
+    import re
+    import subprocess
+    import sys
+
+    code = """
+import ctypes, importlib
+from needletissue.fem import FEModel, Fixed, SurfaceForce, TaggedMesh, solve
+importlib.import_module("needletissue.fem.solve").ASSEMBLY_THREADS = 2
+mesh = TaggedMesh.box((30, 4, 4), (16, 3, 3), layers={"a": (-9, 0), "b": (0, 9)}, origin=(0, -2, -2))
+model = FEModel(mesh, {"a": "needle", "b": "cortical_bone"}, order=2)
+solve(model, [Fixed("xmin"), SurfaceForce("xmax", (0, 0, 100.0))], [1.0], progress=False, results=False)
+ctypes.CDLL(None).malloc_stats()
+"""
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"}
+    if arena_max:
+        env["MALLOC_ARENA_MAX"] = arena_max
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    heaps = re.findall(r"^Arena \d+:", run.stderr, re.M)
+    assert len(heaps) >= 2 if arena_max else heaps == ["Arena 0:"]
