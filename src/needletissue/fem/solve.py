@@ -248,8 +248,10 @@ class _Bodies:
 
     @staticmethod
     def _values(body) -> np.ndarray:
-        """The body's integrated element matrices at the state of its last residual, flat, as FElupe
-        would sum them (its sparsity pattern's value order); FElupe's own sparse assembly is skipped."""
+        """The upper triangles of the body's integrated element matrices at the state of its last residual,
+        flat, (e1 <= e2, cells) with e = node * dim + component (FElupe's value order restricted to them); the
+        lower halves are their mirror images (symmetric tangents), so half the slots and sums (docs/bench.md).
+        FElupe's own sparse assembly is skipped."""
         from weakref import WeakKeyDictionary
 
         from felupe.assembly._sparsity import _patterns
@@ -275,10 +277,13 @@ class _Bodies:
         for name in ("_stiffness_values", "hessian"):
             if hasattr(r, name):
                 setattr(r, name, None)
-        values = np.ascontiguousarray(keep.values).ravel()
+        values = keep.values  # (a, i, b, k, cells): the element matrices, symmetric in (a, i) <-> (b, k)
+        ne = values.shape[0] * values.shape[1]
+        upper = values.reshape(ne, ne, -1)[np.triu_indices(ne)].ravel()  # each element's upper triangle, a copy
+        del values, keep
         if body.assemble.multiplier is not None:
-            values = values * body.assemble.multiplier
-        return values
+            upper *= body.assemble.multiplier
+        return upper
 
     def jac(self, x):
         """At the state of the last fun(x), as FElupe's own assembly: (upper triangle of K11, K10)."""
@@ -331,26 +336,34 @@ class _Bodies:
         self.slots, self.slots10 = [], []
         while pats:
             p = pats.pop(0)
+            # per nonzero of the body's pattern: its slot in K11's upper triangle (a mirror image (col, row) where
+            # row > col: the elements' lower halves are not summed, _values) and in K10 (free row, fixed column)
             rows = np.repeat(np.arange(self.n), np.diff(p.indptr))
-            r, c, c0 = free[rows], free[p.indices], fixed[p.indices]
-            keep = (r >= 0) & (c >= r)
-            w = np.zeros(p.nnz, np.int32)  # slot 0 collects the values outside K11's upper triangle
-            w[keep] = np.searchsorted(keys, r[keep] * n1 + c[keep]) + 1
+            fr, fc = free[rows], free[p.indices]
+            lo, hi = np.minimum(fr, fc), np.maximum(fr, fc)
+            w = np.zeros(p.nnz, np.int32)  # slot 0 collects the values outside K11 (a fixed dof)
+            keep = lo >= 0
+            w[keep] = np.searchsorted(keys, lo[keep] * n1 + hi[keep]) + 1
+            row10 = np.where(fr >= 0, fr, fc)
+            col10 = np.where(fr >= 0, fixed[p.indices], fixed[rows])
             w10 = np.full(p.nnz, -1, np.int64)
-            sel = (r >= 0) & (c0 >= 0)
-            w10[sel] = np.searchsorted(keys10, r[sel] * n0 + c0[sel])
-            del rows, r, c, c0, keep, sel
-            w = w[p.position]
+            sel = (row10 >= 0) & (col10 >= 0)
+            w10[sel] = np.searchsorted(keys10, row10[sel] * n0 + col10[sel])
+            del rows, fr, fc, lo, hi, keep, row10, col10, sel
+            # the same per value of the elements' upper triangles, in _values' order
+            ne = int(round((p.position.size // p.ncells) ** 0.5))
+            pos = p.position.reshape(ne, ne, -1)[np.triu_indices(ne)].ravel()
+            w, v10 = w[pos], w10[pos]
+            del pos, w10
             mark = np.zeros(len(keys) + 1, bool)
             mark[w] = True
             used = np.flatnonzero(mark)
             index = np.cumsum(mark, dtype=np.int32) - 1
             self.slots.append((used.astype(np.int32), index[w]))
-            del mark, index
-            v10 = w10[p.position]
+            del mark, index, w
             sel = np.flatnonzero(v10 >= 0)
             self.slots10.append((sel, v10[sel]))
-            del p, w, w10, v10
+            del p, v10
 
     def solve(self, A, b, x, dof1, dof0, ext0, solver):
         """FElupe's partitioned solve, K11 du1 = b1 - K10 du0, with A = (upper triangle of K11, K10)."""
