@@ -2,6 +2,8 @@
 removal, polish) on a CGAL labelled-image mesh: does the 10-degree goal become reachable?"""
 import json, sys, time
 import numpy as np, meshio
+import os
+SHIFT = float(os.environ.get("SHIFT", "1.0"))  # mm: a flat element this thin may change tissue (the route: 1/3 voxel)
 from needletissue.geometry import smooth
 from needletissue.geometry.relocate_kernel import min_dihedral
 
@@ -28,12 +30,12 @@ report("+ gmsh optimiser", t0)
 fixed, slide, pinned = smooth._move_constraints(nodes, cells, tag, [])
 nodes, n = smooth.relocate_nodes(nodes, cells, fixed, target_deg=smooth.RELOCATE_TARGET, slide=slide)
 report(f"+ relocation ({n} moves)", t0)
-nodes, cells, tag, n = smooth.remove_slivers(nodes, cells, tag, smooth.SLIVER_TARGET, 1.0, pinned=pinned, frozen=[])
+nodes, cells, tag, n = smooth.remove_slivers(nodes, cells, tag, smooth.SLIVER_TARGET, SHIFT, pinned=pinned, frozen=[])
 report(f"+ sliver removal ({n} ops)", t0)
 nodes, n, worst = smooth.polish_nodes(nodes, cells, tag, smooth.POLISH_TARGET, [])
 report(f"+ polish ({n} moves)", t0)
 if worst < smooth.SLIVER_TARGET:
     pinned = smooth._move_constraints(nodes, cells, tag, [])[2]
-    nodes, cells, tag, n = smooth.remove_slivers(nodes, cells, tag, smooth.SLIVER_TARGET, 1.0, pinned=pinned, frozen=[])
+    nodes, cells, tag, n = smooth.remove_slivers(nodes, cells, tag, smooth.SLIVER_TARGET, SHIFT, pinned=pinned, frozen=[])
     nodes, n2, _ = smooth.polish_nodes(nodes, cells, tag, smooth.POLISH_TARGET, [])
     report(f"+ 2nd pass ({n} ops, {n2} moves)", t0)
