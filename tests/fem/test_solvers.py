@@ -161,6 +161,35 @@ def test_metis_ordering_is_a_permutation_that_pardiso_uses_for_the_same_solution
     assert 0 < fill["metis"] <= fill["mkl"]
 
 
+@pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
+def test_lu_of_a_nonsymmetric_tangent_is_ordered_by_metis_without_refinement_steps(monkeypatch):
+    """The LU (frictional contact's non-symmetric tangents) runs on LU_IPARM: METIS 5's ordering handed to Pardiso
+    and no iterative refinement unless a pivot was perturbed (MKL's iparm[0] = 0 refined every solve twice); the same
+    solution to round-off as with Pardiso's own ordering, the residual at the double factor's accuracy."""
+    import scipy.sparse as sp
+
+    mesh = TaggedMesh.box((30, 4, 4), (12, 3, 3), origin=(0, -2, -2), region="needle")
+    K = FEModel(mesh, {"needle": "needle"}, order=2).bodies["needle"].assemble.matrix().tocsr()
+    fixed = np.flatnonzero(np.isclose(mesh.points[:, 0], 0.0))
+    free = np.setdiff1d(np.arange(K.shape[0]), (3 * fixed[:, None] + np.arange(3)).ravel())
+    A = K[free][:, free]
+    A = (A + 1e-3 * abs(A).max() * sp.random(*A.shape, density=1e-3, random_state=0, format="csr")).tocsr()
+    assert abs(A - A.T).max() > 0
+    b = np.random.default_rng(2).normal(size=A.shape[0])
+    x, fill = {}, {}
+    for ordering in ("mkl", "metis"):
+        monkeypatch.setattr(linsolve, "ORDERING", ordering)
+        s = linsolve.make("pardiso")
+        x[ordering] = s(A, b)
+        ps = s._fun.solvers[11]
+        assert (ps.iparm[0], ps.iparm[4], ps.iparm[6], ps.iparm[13]) == (1, 1 if ordering == "metis" else 0, 0, 0)
+        fill[ordering] = ps.iparm[17]
+        s.close()
+    assert np.linalg.norm(A @ x["metis"] - b) < 1e-10 * np.linalg.norm(b)
+    np.testing.assert_allclose(x["metis"], x["mkl"], rtol=0, atol=1e-9 * np.abs(x["mkl"]).max())
+    assert 0 < fill["metis"] <= fill["mkl"]
+
+
 def test_metis_ordering_of_a_pattern_met_before_comes_from_the_cache(tmp_path, monkeypatch):
     """The ordering of a sparsity pattern met before is read from the mesh cache, the same permutation
     METIS computes (pymetis not called); another pattern is a miss; a damaged entry is a miss, rewritten."""

@@ -229,6 +229,12 @@ def nested_dissection(M) -> np.ndarray | None:
 # Pardiso iparm (1-based as in MKL's manual) for mtype 2: user values (1), METIS ordering (2), no
 # iterative refinement (8), report the factor's nonzeros (18); the rest 0 as MKL's defaults for it.
 CHOLESKY_IPARM = {1: 1, 2: 2, 8: 0, 18: -1}
+# ... and for the LU (mtype 11, frictional contact): MKL's own defaults for it made explicit (METIS, pivot
+# perturbation 1e-13, scaling and matching; iparm 8 = 0: refinement only after a perturbed pivot) instead of
+# iparm[0] = 0, which also refines every solve twice; with METIS 5's ordering as the Cholesky's. Captured contact
+# tangent of the coarse anatomical model (47,374 rows): factor 38.3 -> 34.4 M nonzeros, back-substitution
+# 0.108 -> 0.03 s, the same relative residual (6e-12) (docs/bench.md, "The contact LU").
+LU_IPARM = {1: 1, 2: 2, 10: 13, 11: 1, 13: 1, 18: -1}
 
 
 # The Cholesky factor in single precision (iparm 28 = 1: half the memory, ~0.6x the time) preconditions CG
@@ -314,9 +320,12 @@ class _Pardiso:
         # Cholesky: MKL's parameters (iparm[0] = 0) add two steps of iterative refinement to every
         # solve, each a residual and a back-substitution: 0.088 -> 0.036 s CPU per solve without,
         # same relative residual (2.8e-11) on the needle model's tangent. With no pivot perturbed
-        # (positive definite) refinement has nothing to repair; LDL^T and LU keep MKL's defaults.
+        # (positive definite) refinement has nothing to repair; the LU likewise (LU_IPARM); LDL^T keeps MKL's
+        # defaults.
         for i, v in CHOLESKY_IPARM.items():
             self.solvers[2].set_iparm(i, v)
+        for i, v in LU_IPARM.items():
+            self.solvers[11].set_iparm(i, v)
         self.definite = True  # try Cholesky first until a tangent is not positive definite
         self.single = single  # Cholesky in single precision, refined by CG, until CG does not converge
         self.pattern = {}  # mtype -> (indptr, indices) of the analysed matrix
@@ -421,7 +430,7 @@ class _Pardiso:
                 # analyse the union: a contact pair that comes and goes costs one analysis, not one per return
                 M = _within(M, _union(known, M))
             self.pattern.pop(mtype, None)
-            if mtype == 2:  # the Cholesky's iparm are ours (iparm 1 = 1); LDL^T and LU keep MKL's defaults
+            if mtype in (2, 11):  # the Cholesky's and the LU's iparm are ours (iparm 1 = 1); LDL^T keeps MKL's
                 perm = nested_dissection(M) if ORDERING == "metis" else None
                 ps.perm = np.zeros(0, np.int32) if perm is None else perm + 1
                 ps.set_iparm(5, 0 if perm is None else 1)  # 1: the fill-reducing ordering is ps.perm
