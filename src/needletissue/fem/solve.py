@@ -157,11 +157,13 @@ class _Bodies:
     """Residual, tangent and linear solve for FElupe's newtonraphson when the items are the model's
     bodies and point loads only (no contact): each body's element matrices go straight into the upper
     triangle of the free-free block K11 (and into K10), whose CSR patterns are built once, through one
-    int32 index per integrated value into the body's own slots of K11, instead of FElupe's per-body CSR
-    matrix (an int64 position per value, ~1.5 GB at paper scale), the sum of the bodies' global matrices, its partition, a symmetry test
-    and a cut-out triangle at every iteration (docs/bench.md). The bodies' hyperelastic laws have
-    symmetric tangents (second derivatives of an energy). Bodies are assembled on `threads` threads,
-    at most one body's element matrices alive per thread (FElupe's copy in its results is dropped)."""
+    int32 index per value of each element matrix's upper triangle into the body's own slots of K11,
+    instead of FElupe's per-body CSR matrix (an int64 position per value, ~1.5 GB at paper scale), the
+    sum of the bodies' global matrices, its partition, a symmetry test and a cut-out triangle at every
+    iteration (docs/bench.md). The bodies' hyperelastic laws have symmetric tangents (second derivatives
+    of an energy), so the element matrices' lower halves are not summed. Bodies are assembled on
+    `threads` threads, at most one body's element matrices alive per thread (FElupe's copy in its
+    results is dropped)."""
 
     def __init__(self, items, bodies, dof1, dof0, ndof, threads: int = 1):
         self.items, self.bodies = items, bodies
