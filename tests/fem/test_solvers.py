@@ -393,6 +393,7 @@ def test_a_kept_double_factor_keeps_its_matrix_when_the_caller_drops_the_values(
     s.close()
 
 
+@pytest.mark.skipif(__import__("platform").libc_ver()[0] != "glibc", reason="glibc's malloc arenas")
 @pytest.mark.parametrize("arena_max", [None, "8"])
 def test_the_assembly_threads_allocate_from_the_main_heap(arena_max):
     """needletissue sets glibc's M_ARENA_MAX to 1 on import (docs/bench.md, "One heap for the assembly threads"):
