@@ -14,13 +14,19 @@ cells = np.vstack([m.cells[i].data for i in ci]).astype(np.int64)
 tag = np.concatenate([m.cell_data["medit:ref"][i] for i in ci]).astype(np.int64)
 used, inv = np.unique(cells, return_inverse=True)
 nodes, cells = m.points[used].astype(float), inv.reshape(-1, 4)
+first = {}
+
+
 def report(stage, t0):
     v = smooth.signed_volume(nodes, cells)
     md = min_dihedral(np.ascontiguousarray(nodes), np.ascontiguousarray(cells))
     vols = {int(l): abs(v[tag == l]).sum() for l in np.unique(tag)}
     err = {l: 100 * (vols[l] / (info["counts"][str(l)] * 27.0) - 1) for l in vols}
+    first.setdefault("vols", vols)
+    moved = max(abs(vols[l] / first["vols"][l] - 1) for l in vols) * 100
     print(f"{stage:28s} {len(cells):7d} tets  min {md.min():5.2f}  p1 {np.percentile(md, 1):5.2f}  <10: {(md < 10).sum():4d}"
-          f"  worst vol {max(err.values(), key=abs):+.2f} %  {time.process_time() - t0:6.1f} s CPU", flush=True)
+          f"  worst vol {max(err.values(), key=abs):+.2f} %  tissue volumes moved <= {moved:.3f} %"
+          f"  {time.process_time() - t0:6.1f} s CPU", flush=True)
 t0 = time.process_time()
 v = smooth.signed_volume(nodes, cells); cells[v < 0] = cells[v < 0][:, [0, 2, 1, 3]]
 report("CGAL", t0)
