@@ -150,6 +150,12 @@ class _Values:
         return self
 
 
+def _element_upper(a, ne: int) -> np.ndarray:
+    """The values of each element's upper triangle (e1 <= e2) of `a`, element matrices (ne, ne, cells) in FElupe's
+    value order, flat as (e1 <= e2, cells): one order for the integrated values and their slots (_Bodies)."""
+    return np.reshape(a, (ne, ne, -1))[np.triu_indices(ne)].ravel()
+
+
 _PATTERNS_LOCK = threading.Lock()  # FElupe's sparsity-pattern cache (module-level), swapped per body in _Bodies
 
 
@@ -280,8 +286,7 @@ class _Bodies:
             if hasattr(r, name):
                 setattr(r, name, None)
         values = keep.values  # (a, i, b, k, cells): the element matrices, symmetric in (a, i) <-> (b, k)
-        ne = values.shape[0] * values.shape[1]
-        upper = values.reshape(ne, ne, -1)[np.triu_indices(ne)].ravel()  # each element's upper triangle, a copy
+        upper = _element_upper(values, values.shape[0] * values.shape[1])  # a copy
         del values, keep
         if body.assemble.multiplier is not None:
             upper *= body.assemble.multiplier
@@ -353,8 +358,7 @@ class _Bodies:
             w10[sel] = np.searchsorted(keys10, row10[sel] * n0 + col10[sel])
             del rows, fr, fc, lo, hi, keep, row10, col10, sel
             # the same per value of the elements' upper triangles, in _values' order
-            ne = int(round((p.position.size // p.ncells) ** 0.5))
-            pos = p.position.reshape(ne, ne, -1)[np.triu_indices(ne)].ravel()
+            pos = _element_upper(p.position, int(round((p.position.size // p.ncells) ** 0.5)))
             w, v10 = w[pos], w10[pos]
             del pos, w10
             mark = np.zeros(len(keys) + 1, bool)
