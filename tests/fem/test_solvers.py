@@ -135,12 +135,7 @@ def test_metis_ordering_is_a_permutation_that_pardiso_uses_for_the_same_solution
     with its own METIS to round-off and fills no more of the factor."""
     import scipy.sparse as sp
 
-    mesh = TaggedMesh.box((30, 4, 4), (12, 3, 3), origin=(0, -2, -2), region="needle")
-    K = FEModel(mesh, {"needle": "needle"}, order=2).bodies["needle"].assemble.matrix().tocsr()
-    fixed = np.flatnonzero(np.isclose(mesh.points[:, 0], 0.0))  # the x = 0 face clamped: positive definite
-    free = np.setdiff1d(np.arange(K.shape[0]), (3 * fixed[:, None] + np.arange(3)).ravel())
-    upper = sp.triu(K[free][:, free], format="csr")
-    upper.sort_indices()
+    upper, A = _clamped_needle_tangent()  # the x = 0 face clamped: positive definite
     perm = linsolve.nested_dissection(upper)
     assert perm.dtype == np.int32 and np.array_equal(np.sort(perm), np.arange(upper.shape[0]))
     assert linsolve.nested_dissection(sp.identity(5, format="csr")) is None  # nothing to order
@@ -155,7 +150,6 @@ def test_metis_ordering_is_a_permutation_that_pardiso_uses_for_the_same_solution
         assert ps.iparm[4] == (1 if ordering == "metis" else 0)
         fill[ordering] = ps.iparm[17]
         s.close()
-    A = upper + sp.triu(upper, 1).T
     assert np.linalg.norm(A @ x["metis"] - b) < 1e-10 * np.linalg.norm(b)
     np.testing.assert_allclose(x["metis"], x["mkl"], rtol=0, atol=1e-9 * np.abs(x["mkl"]).max())
     assert 0 < fill["metis"] <= fill["mkl"]
