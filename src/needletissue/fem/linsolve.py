@@ -176,7 +176,7 @@ def make(name: str, points: np.ndarray | None = None, dof1: np.ndarray | None = 
 
 # Pardiso's fill-reducing ordering: "metis" computes it with METIS 5 (pymetis: nested dissection of the
 # matrix graph) and hands it to Pardiso's Cholesky (iparm 5 = 1); "mkl" leaves it to Pardiso's own METIS (iparm
-# 2 = 2), as LDL^T and LU (contact) always do.
+# 2 = 2), as LDL^T always does; the LU (contact) gets METIS 5's too (LU_IPARM).
 # On the default `fe needle` tangent (72,348 dofs) Pardiso's own gives 40.5 M factor nonzeros and 49.8 GFlop
 # per Cholesky, METIS 5's 37.1 M and 39.3 GFlop: factorisation 1.9 -> 1.3 s on two threads, analysis
 # 0.8 -> 0.3 s (plus ~1 s of ordering, once per pattern, kept in the mesh cache) (docs/bench.md, "Pardiso's ordering: METIS 5").
