@@ -275,10 +275,17 @@ class StallLinesearch(LinesearchPlugin):
     on the potential's slope s(a) = r(x + a dx) . dx: a trial is accepted when s(a) <= eta |s(0)| or
     the residual contracts to `contraction` |r(0)|; a rejected one's a moves to the slope's zero
     (linear interpolation, within [0.1, 0.9] of it). Easy increments keep Newton's quadratic
-    convergence (no stall, no projection)."""
+    convergence (no stall, no projection).
+
+    An increment whose best residual of its last `window` iterations is not below `plateau` x its best
+    before them has stopped converging (a barrier pair the Newton step keeps running into, or a residual
+    floor): it raises NewtonConvergenceError there, so fem.solve cuts the increment back at once instead
+    of after its `maxiter` iterations (docs/contact.md, "Giving up on a plateau")."""
 
     project = True
     progress = 0.5  # a residual counts as progress below this x the best before it
+    window = 5
+    plateau = 0.95  # None: never give up before maxiter
 
     def __init__(self, items, patience: int = 2, recover: float = 1e-2, eta: float = 0.5,
                  contraction: float = 0.9, max_trials: int = 10):
@@ -299,10 +306,20 @@ class StallLinesearch(LinesearchPlugin):
     def before_newton(self, context, st):
         super().before_newton(context, st)
         self.fnorms = []
+        self.history = []  # every residual of this increment
         self._damp(None)
 
     def after_iteration(self, context, st):
         self.fnorms.append(float(st.fnorm))
+        h, w = self.history, self.window
+        h.append(float(st.fnorm) if np.isfinite(st.fnorm) else np.inf)
+        if (self.plateau is not None and not st.success and len(h) > w
+                and not min(h[-w:]) < self.plateau * min(h[:-w])):
+            from felupe.tools._newton import NewtonConvergenceError
+
+            raise NewtonConvergenceError(
+                f"contact Newton on a plateau: best |r| {min(h[-w:]):.3g} in the last {w} iterations against "
+                f"{min(h[:-w]):.3g} before them")
         fn, k = self.fnorms, self.patience
         if len(fn) > k and min(fn[-k:]) >= self.progress * min(fn[:-k]):  # stalled: switch full <-> damped
             self.stalls += 1
@@ -360,7 +377,7 @@ class _ContactResults(Results):
             self._item.update_lag()
 
 
-def tangential_collisions(cmesh, V, collisions, barrier, mu):
+def tangential_collisions(cmesh, V, collisions, barrier, mu, reuse: dict | None = None):
     """ipctk's friction pairs of `collisions` at the vertices V, plus those of the nearly parallel
     edge-edge collisions that ipctk's build leaves out (mollifier m < 1), with their weight times m
     like their barrier's: such a pair's friction then grows with its barrier instead of jumping from
@@ -369,47 +386,63 @@ def tangential_collisions(cmesh, V, collisions, barrier, mu):
     type: edge-edge, edge-vertex or vertex-vertex (the line-line closest point of nearly parallel
     edges lies far outside them). mu: per collision vertex, blended as ipctk does (interpolated at
     the closest point, the two sides averaged). Returns the TangentialCollisions and, per added pair,
-    (tangential collision, m, the edge pair's vertex ids, grad m by their positions)."""
+    (tangential collision, m, the edge pair's vertex ids, eps_x).
+
+    `reuse`: a dict kept by the caller between calls. With a uniform mu the added pairs' objects are
+    taken from it and given their new weight: ipctk's friction force and its Jacobians recompute the
+    normal force, tangent basis and closest point from the lagged positions they are given, so only a
+    pair's vertices, weight and mu matter there. Building the objects was ~40 us per pair, 6-22 ms per
+    evaluation on the coarse needle model (docs/contact.md, "Giving up on a plateau")."""
     tangential = ipctk.TangentialCollisions()
     tangential.build(cmesh, V, collisions, barrier, mu, mu)
     E, F = cmesh.edges, cmesh.faces
     T = ipctk.EdgeEdgeDistanceType
+    uniform = reuse is not None and mu.size > 0 and bool(np.all(mu == mu[0]))
+    kept = {}
     added, lists = [], {"ee": [], "ev": [], "vv": []}
-    for c in _nearly_parallel(collisions.ee_collisions, V, E):
-        x = c.dof(V, E, F)
+    near, ids = _nearly_parallel(collisions.ee_collisions, V, E)
+    for c, (ea, eb) in zip(near, ids):
+        a0, a1, b0, b1 = (int(i) for i in (*E[ea], *E[eb]))
+        x = V[[a0, a1, b0, b1]].ravel()  # = c.dof(V, E, F)
         m = c.mollifier(x)
         if m >= 1.0:  # ipctk's build has it
             continue
-        a0, a1, b0, b1 = (int(i) for i in c.vertex_ids(E, F))
-        ea, eb = int(c.edge0_id), int(c.edge1_id)
+        ea, eb = int(ea), int(eb)
         kind, pair = {
-            T.EA_EB: ("ee", c),
+            T.EA_EB: ("ee", (ea, eb)),
             T.EA_EB0: ("ev", (ea, b0)), T.EA_EB1: ("ev", (ea, b1)),
             T.EA0_EB: ("ev", (eb, a0)), T.EA1_EB: ("ev", (eb, a1)),
             T.EA0_EB0: ("vv", (a0, b0)), T.EA0_EB1: ("vv", (a0, b1)),
             T.EA1_EB0: ("vv", (a1, b0)), T.EA1_EB1: ("vv", (a1, b1)),
         }[c.dtype]
-        if kind == "ee":
-            t = ipctk.EdgeEdgeTangentialCollision(c, x, barrier)
-            mus = [mu[i] + (mu[j] - mu[i]) * t.closest_point[k] for k, (i, j) in enumerate(((a0, a1), (b0, b1)))]
-        elif kind == "ev":
-            n = ipctk.EdgeVertexNormalCollision(*pair)
-            t = ipctk.EdgeVertexTangentialCollision(n, n.dof(V, E, F), barrier)
-            i, j = E[pair[0]]
-            mus = [mu[i] + (mu[j] - mu[i]) * t.closest_point[0], mu[pair[1]]]
-        else:
-            n = ipctk.VertexVertexNormalCollision(*pair)
-            t = ipctk.VertexVertexTangentialCollision(n, n.dof(V, E, F), barrier)
-            mus = [mu[pair[0]], mu[pair[1]]]
+        key = (ea, eb, kind, pair)  # one object per edge pair: two edge pairs may give the same vertex pair
+        t = reuse.get(key) if uniform else None
+        if t is None:
+            if kind == "ee":
+                t = ipctk.EdgeEdgeTangentialCollision(c, x, barrier)
+                mus = [mu[i] + (mu[j] - mu[i]) * t.closest_point[k] for k, (i, j) in enumerate(((a0, a1), (b0, b1)))]
+            elif kind == "ev":
+                n = ipctk.EdgeVertexNormalCollision(*pair)
+                t = ipctk.EdgeVertexTangentialCollision(n, n.dof(V, E, F), barrier)
+                i, j = E[pair[0]]
+                mus = [mu[i] + (mu[j] - mu[i]) * t.closest_point[0], mu[pair[1]]]
+            else:
+                n = ipctk.VertexVertexNormalCollision(*pair)
+                t = ipctk.VertexVertexTangentialCollision(n, n.dof(V, E, F), barrier)
+                mus = [mu[pair[0]], mu[pair[1]]]
+            t.mu_s = t.mu_k = t.mu_s_effective_lagged = t.mu_k_effective_lagged = 0.5 * (mus[0] + mus[1])
         t.weight = c.weight * m
-        t.mu_s = t.mu_k = t.mu_s_effective_lagged = t.mu_k_effective_lagged = 0.5 * (mus[0] + mus[1])
+        kept[key] = t
         lists[kind].append(t)
         # numbers only: a reference into `collisions` dangles (segfault) once it is rebuilt
-        added.append((t, m, np.array([a0, a1, b0, b1]), np.asarray(c.mollifier_gradient(x)).copy()))
+        added.append((t, m, np.array([a0, a1, b0, b1]), float(c.eps_x)))
+    if uniform:
+        reuse.clear()
+        reuse.update(kept)
     if not added:
         return tangential, added
-    # into a new set: the lists read from `tangential` refer into its vectors (assigning them back
-    # to it segfaulted)
+    # into a new set (which copies the pairs): the lists read from `tangential` refer into its vectors
+    # (assigning them back to it segfaulted)
     out = ipctk.TangentialCollisions()
     out.vv_collisions = list(tangential.vv_collisions) + lists["vv"]
     out.ev_collisions = list(tangential.ev_collisions) + lists["ev"]
@@ -421,15 +454,17 @@ def tangential_collisions(cmesh, V, collisions, barrier, mu):
 def _nearly_parallel(ee, V, E):
     """The edge-edge collisions that may have a mollifier m < 1 at V: |ea x eb|^2 below their eps_x
     (ipctk's test), by NumPy for all of them at once, with a margin for round-off; the caller applies
-    ipctk's own test to these. Calling ipctk per collision for the test cost ~60 ms per evaluation
-    on the coarse anatomical model (~3,000 edge-edge collisions, a few mollified)."""
+    ipctk's own test to these. Returns them and their (edge0, edge1) ids. Calling ipctk per collision
+    for the test cost ~60 ms per evaluation on the coarse anatomical model (~3,000 edge-edge
+    collisions, a few mollified)."""
     if not ee:
-        return []
+        return [], np.zeros((0, 2), int)
     ids = np.array([(c.edge0_id, c.edge1_id) for c in ee])
     eps = np.array([c.eps_x for c in ee])
     a, b = E[ids[:, 0]], E[ids[:, 1]]
     cross = np.cross(V[a[:, 1]] - V[a[:, 0]], V[b[:, 1]] - V[b[:, 0]])
-    return [ee[i] for i in np.flatnonzero(np.einsum("ij,ij->i", cross, cross) < eps * (1 + 1e-6))]
+    keep = np.flatnonzero(np.einsum("ij,ij->i", cross, cross) < eps * (1 + 1e-6))
+    return [ee[i] for i in keep], ids[keep]
 
 
 def mollifier_force_jacobian(friction, added, cmesh, rest, V, slip, barrier):
@@ -439,9 +474,10 @@ def mollifier_force_jacobian(friction, added, cmesh, rest, V, slip, barrier):
     E, F = cmesh.edges, cmesh.faces
     n = rest.size
     rows, cols, vals = [], [], []
-    for t, m, ids, grad_m in added:
+    for t, m, ids, eps_x in added:
         if m <= 0.0:  # exactly parallel: grad m = 0
             continue
+        grad_m = ipctk.edge_edge_mollifier_gradient(*V[ids], eps_x)
         x0 = t.dof(rest, E, F)
         f = friction.force(t, x0, t.dof(V, E, F) - x0, t.dof(slip, E, F), barrier)
         rows_ = (3 * np.asarray(t.vertex_ids(E, F))[:t.num_vertices(), None] + np.arange(3)).ravel()
@@ -497,6 +533,7 @@ class FrictionalContact:
         self._base = None  # displacements of the last tangent (the Newton iterate); None: the converged ones
         self._state = None
         self._mollified = []  # mollified edge-edge friction pairs of the last _tangential
+        self._pairs = {}  # their objects, reused by the next (tangential_collisions)
         self.project = False  # PSD-projected Hessians (StallLinesearch sets it while Newton stalls)
         self.assemble = Assemble(vector=self._vector, matrix=self._matrix)
 
@@ -544,13 +581,14 @@ class FrictionalContact:
         state = {"u": u, "V": V, "admissible": admissible}
         if admissible:
             self.collisions.build(self.cmesh, V, self.settings.dhat)
-            self.tangential, self._mollified = self._tangential(V, self.collisions, self._lagged)
+            reuse = self._pairs if self.settings.lag == "iteration" else None
+            self.tangential, self._mollified = self._tangential(V, self.collisions, self._lagged, reuse)
             state["slip"] = np.asfortranarray(u - u_prev)
         self._state = state
         self.results._statevars = u.copy()
         return state
 
-    def _tangential(self, V, collisions, lagged):
+    def _tangential(self, V, collisions, lagged, reuse=None):
         """Friction pairs: from the current collisions (lag="iteration") or the lagged (vertices,
         collisions) of a converged state (lag="step"; None: none yet, frictionless), and the
         mollified edge-edge pairs among them (tangential_collisions)."""
@@ -558,7 +596,7 @@ class FrictionalContact:
         lag = (V, collisions) if self.settings.lag == "iteration" else lagged
         mollified = []
         if lag is not None and np.any(self.mu > 0) and len(lag[1]) > 0:
-            tangential, mollified = tangential_collisions(self.cmesh, lag[0], lag[1], self.barrier, self.mu)
+            tangential, mollified = tangential_collisions(self.cmesh, lag[0], lag[1], self.barrier, self.mu, reuse)
         return tangential, mollified
 
     def _gradient(self, V, collisions, tangential, slip):
