@@ -184,6 +184,41 @@ def test_lu_of_a_nonsymmetric_tangent_is_ordered_by_metis_without_refinement_ste
     assert 0 < fill["metis"] <= fill["mkl"]
 
 
+def test_a_solver_told_its_matrices_are_nonsymmetric_takes_the_lu_without_testing_them(monkeypatch):
+    """fem.solve tells the solver when implicit friction makes every tangent non-symmetric: Pardiso then goes to its
+    LU at once (no A - A^T, ~40-70 ms per call on the coarse needle model), with the tested path's solution; the
+    symmetric matrix of a bonded model still gets the Cholesky by default."""
+    import scipy.sparse as sp
+
+    mesh = TaggedMesh.box((30, 4, 4), (12, 3, 3), origin=(0, -2, -2), region="needle")
+    K = FEModel(mesh, {"needle": "needle"}).bodies["needle"].assemble.matrix().tocsr()
+    fixed = np.flatnonzero(np.isclose(mesh.points[:, 0], 0.0))
+    free = np.setdiff1d(np.arange(K.shape[0]), (3 * fixed[:, None] + np.arange(3)).ravel())
+    S = K[free][:, free].tocsr()
+    A = (S + 1e-3 * abs(S).max() * sp.random(*S.shape, density=1e-3, random_state=0, format="csr")).tocsr()
+    b = np.random.default_rng(2).normal(size=A.shape[0])
+    tested = linsolve.make("pardiso")
+    told = linsolve.make("pardiso")
+    told.nonsymmetric()
+    x = tested(A, b)
+    tests = []
+    real_abs = abs
+
+    def counting_abs(m):
+        tests.append(1)
+        return real_abs(m)
+
+    monkeypatch.setattr("builtins.abs", counting_abs)
+    y = told(A, b)
+    monkeypatch.undo()
+    assert not tests and 11 in told._fun.pattern and 2 not in told._fun.pattern
+    np.testing.assert_allclose(y, x, rtol=0, atol=1e-10 * np.abs(x).max())
+    tested(S, b)
+    assert 2 in tested._fun.pattern  # the default: a symmetric matrix is tested and factored by Cholesky
+    tested.close()
+    told.close()
+
+
 def test_metis_ordering_of_a_pattern_met_before_comes_from_the_cache(tmp_path, monkeypatch):
     """The ordering of a sparsity pattern met before is read from the mesh cache, the same permutation
     METIS computes (pymetis not called); another pattern is a miss; a damaged entry is a miss, rewritten."""

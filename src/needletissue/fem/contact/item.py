@@ -377,6 +377,16 @@ class _ContactResults(Results):
             self._item.update_lag()
 
 
+_T = ipctk.EdgeEdgeDistanceType
+# an edge-edge distance type -> the friction pair ipctk's collision set makes of it: its kind and the
+# positions of its two ids in (ea, eb, a0, a1, b0, b1)
+_EDGE_PAIR_KINDS = {
+    _T.EA_EB: ("ee", 0, 1),
+    _T.EA_EB0: ("ev", 0, 4), _T.EA_EB1: ("ev", 0, 5), _T.EA0_EB: ("ev", 1, 2), _T.EA1_EB: ("ev", 1, 3),
+    _T.EA0_EB0: ("vv", 2, 4), _T.EA0_EB1: ("vv", 2, 5), _T.EA1_EB0: ("vv", 3, 4), _T.EA1_EB1: ("vv", 3, 5),
+}
+
+
 def tangential_collisions(cmesh, V, collisions, barrier, mu, reuse: dict | None = None):
     """ipctk's friction pairs of `collisions` at the vertices V, plus those of the nearly parallel
     edge-edge collisions that ipctk's build leaves out (mollifier m < 1), with their weight times m
@@ -396,25 +406,20 @@ def tangential_collisions(cmesh, V, collisions, barrier, mu, reuse: dict | None 
     tangential = ipctk.TangentialCollisions()
     tangential.build(cmesh, V, collisions, barrier, mu, mu)
     E, F = cmesh.edges, cmesh.faces
-    T = ipctk.EdgeEdgeDistanceType
     uniform = reuse is not None and mu.size > 0 and bool(np.all(mu == mu[0]))
     kept = {}
     added, lists = [], {"ee": [], "ev": [], "vv": []}
     near, ids = _nearly_parallel(collisions.ee_collisions, V, E)
-    for c, (ea, eb) in zip(near, ids):
-        a0, a1, b0, b1 = (int(i) for i in (*E[ea], *E[eb]))
-        x = V[[a0, a1, b0, b1]].ravel()  # = c.dof(V, E, F)
+    quads = np.column_stack([E[ids[:, 0]], E[ids[:, 1]]])  # a0, a1, b0, b1 per pair
+    X = V[quads].reshape(-1, 12)  # = c.dof(V, E, F) per pair
+    rows = np.column_stack([ids, quads]).tolist()  # ea, eb, a0, a1, b0, b1 as Python ints
+    for c, x, q, row in zip(near, X, quads, rows):
         m = c.mollifier(x)
         if m >= 1.0:  # ipctk's build has it
             continue
-        ea, eb = int(ea), int(eb)
-        kind, pair = {
-            T.EA_EB: ("ee", (ea, eb)),
-            T.EA_EB0: ("ev", (ea, b0)), T.EA_EB1: ("ev", (ea, b1)),
-            T.EA0_EB: ("ev", (eb, a0)), T.EA1_EB: ("ev", (eb, a1)),
-            T.EA0_EB0: ("vv", (a0, b0)), T.EA0_EB1: ("vv", (a0, b1)),
-            T.EA1_EB0: ("vv", (a1, b0)), T.EA1_EB1: ("vv", (a1, b1)),
-        }[c.dtype]
+        kind, p0, p1 = _EDGE_PAIR_KINDS[c.dtype]
+        ea, eb, a0, a1, b0, b1 = row
+        pair = (row[p0], row[p1])
         key = (ea, eb, kind, pair)  # one object per edge pair: two edge pairs may give the same vertex pair
         t = reuse.get(key) if uniform else None
         if t is None:
@@ -435,7 +440,7 @@ def tangential_collisions(cmesh, V, collisions, barrier, mu, reuse: dict | None 
         kept[key] = t
         lists[kind].append(t)
         # numbers only: a reference into `collisions` dangles (segfault) once it is rebuilt
-        added.append((t, m, np.array([a0, a1, b0, b1]), float(c.eps_x)))
+        added.append((t, m, q, float(c.eps_x)))
     if uniform:
         reuse.clear()
         reuse.update(kept)
@@ -546,6 +551,12 @@ class FrictionalContact:
         if u is None:
             u = self._u()
         return np.asfortranarray(self.rest + u)
+
+    @property
+    def symmetric_tangent(self) -> bool:
+        """False with implicit friction (lag="iteration"): its tangent is not symmetric, so the linear
+        solver takes the LU without testing the matrix for symmetry (fem.solve)."""
+        return not (self.settings.lag == "iteration" and bool(np.any(self.mu > 0)))
 
     def admissible(self) -> bool:
         """False if the surfaces passed through each other since the last converged state (CCD)."""
