@@ -78,11 +78,6 @@ class TimedSolver:
         """Whether the backend can keep its last factorisation for `resolve` (Pardiso with reuse)."""
         return bool(getattr(self._fun, "can_keep", False))
 
-    def nonsymmetric(self):
-        """The caller's matrices are not symmetric (e.g. implicit friction): Pardiso's LU without testing them."""
-        if hasattr(self._fun, "symmetric"):
-            self._fun.symmetric = False
-
     def keep_factor(self, keep: bool = True):
         """Keep the next factorisations until `release` (for `resolve`); no-op without support."""
         if self.can_resolve:
@@ -332,7 +327,7 @@ class _Pardiso:
         for i, v in LU_IPARM.items():
             self.solvers[11].set_iparm(i, v)
         self.definite = True  # try Cholesky first until a tangent is not positive definite
-        self.symmetric = True  # False: the caller's tangents are not symmetric (LU without testing them)
+        self.symmetric = True  # False after a non-symmetric matrix: the LU for every later one, untested
         self.single = single  # Cholesky in single precision, refined by CG, until CG does not converge
         self.pattern = {}  # mtype -> (indptr, indices) of the analysed matrix
         self.analyses = 0
@@ -392,8 +387,10 @@ class _Pardiso:
             sym, M = True, A
         else:
             A = A.tocsr()
-            # the test costs ~40-70 ms on the coarse needle model's contact tangent (20,160 rows)
+            # after the first non-symmetric matrix (implicit friction) the LU without testing: the test costs
+            # 40-70 ms on the coarse needle model's contact tangent (20,160 rows), and friction stays
             sym = self.symmetric and abs(A - A.T).max() <= 1e-12 * abs(A).max()
+            self.symmetric = sym
             M = sp.triu(A, format="csr") if sym else A
         if sym and self.definite:
             try:

@@ -589,8 +589,6 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
         linsolve.request_reproducible_mkl()
     # contact runs: the double factor their measured paths were made with (a contact path follows the last digits)
     linear = linsolve.make(name, model.mesh.points, loads.dof1, single=False if contact else None)
-    if any(getattr(i, "symmetric_tangent", True) is False for i in items):
-        linear.nonsymmetric()
     bodies = list(model.bodies.values())
     all_items = [*bodies, *(ld for ld, _ in loads.loads), *items]
     field = model.field

@@ -552,12 +552,6 @@ class FrictionalContact:
             u = self._u()
         return np.asfortranarray(self.rest + u)
 
-    @property
-    def symmetric_tangent(self) -> bool:
-        """False with implicit friction (lag="iteration"): its tangent is not symmetric, so the linear
-        solver takes the LU without testing the matrix for symmetry (fem.solve)."""
-        return not (self.settings.lag == "iteration" and bool(np.any(self.mu > 0)))
-
     def admissible(self) -> bool:
         """False if the surfaces passed through each other since the last converged state (CCD)."""
         return bool(self._evaluate()["admissible"])
