@@ -128,6 +128,35 @@ def test_pardiso_reanalyses_when_the_pattern_changes():
     s.close()
 
 
+def test_a_matrix_fits_the_analysed_pattern_or_their_union():
+    """linsolve._fit puts M on the analysed pattern (the same matrix, zeros where M has none) or, when M has an
+    entry outside it, on the union of both patterns, which then holds each of them: against dense arithmetic."""
+    import scipy.sparse as sp
+
+    rng = np.random.default_rng(3)
+
+    def random_csr(density):
+        M = sp.random(40, 40, density=density, random_state=rng, format="csr") + sp.eye(40)
+        M.sort_indices()
+        return M.tocsr()
+
+    A = random_csr(0.2)
+    same, pattern = linsolve._fit(A, (A.indptr, A.indices))
+    assert same is A and pattern[1] is A.indices
+    sub = sp.csr_matrix(A.multiply(rng.random(A.shape) < 0.5))
+    sub.eliminate_zeros()
+    on, pattern = linsolve._fit(sub, (A.indptr, A.indices))
+    assert pattern[1] is A.indices and on.nnz == A.nnz
+    np.testing.assert_array_equal(on.toarray(), sub.toarray())
+    B = random_csr(0.1)
+    on, (indptr, indices) = linsolve._fit(B, (A.indptr, A.indices))
+    union = (A != 0).toarray() | (B != 0).toarray()
+    assert on.nnz == union.sum()
+    np.testing.assert_array_equal(sp.csr_matrix((np.ones(len(indices)), indices, indptr), shape=A.shape).toarray(),
+                                  union.astype(float))
+    np.testing.assert_array_equal(on.toarray(), B.toarray())
+
+
 @pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
 def test_metis_ordering_is_a_permutation_that_pardiso_uses_for_the_same_solution(monkeypatch):
     """METIS 5's nested dissection (linsolve.ORDERING = "metis") reorders the Cholesky: a permutation of

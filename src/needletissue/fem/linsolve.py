@@ -427,20 +427,22 @@ class _Pardiso:
                 else:
                     ps.free_memory(everything=True)
         known = self.pattern.get(mtype)
-        fit = None if known is None else _within(M, known)
-        if fit is None:
-            if known is not None:
+        fit = None
+        if known is not None:
+            # on the analysed pattern, or on its union with M's: a contact pair that comes and goes costs one
+            # analysis, not one per return
+            M, pattern = _fit(M, known)
+            if pattern is known:
+                fit = M
+            else:
                 ps.free_memory(everything=True)
-                # analyse the union: a contact pair that comes and goes costs one analysis, not one per return
-                M = _within(M, _union(known, M))
+        if fit is None:
             self.pattern.pop(mtype, None)
             if mtype in (2, 11):  # the Cholesky's and the LU's iparm are ours (iparm 1 = 1); LDL^T keeps MKL's
                 perm = nested_dissection(M) if ORDERING == "metis" else None
                 ps.perm = np.zeros(0, np.int32) if perm is None else perm + 1
                 ps.set_iparm(5, 0 if perm is None else 1)  # 1: the fill-reducing ordering is ps.perm
             ps.set_iparm(28, int(mtype == 2 and self.single))  # the factor's precision (and a, b, x's)
-        else:
-            M = fit
         single = bool(ps.iparm[27])
         F, Fb = _single(M, b) if single else (M, b)  # what Pardiso reads (float32 values if single)
         if fit is None:
@@ -492,33 +494,32 @@ def _keys(indptr, indices, n):
     return np.repeat(np.arange(len(indptr) - 1, dtype=np.int64) * n, np.diff(indptr)) + indices
 
 
-def _within(M, pattern):
-    """M (CSR, sorted) on the analysed `pattern` (indptr, indices): explicit zeros where M has no entry, or
-    None if M has an entry outside it. Frictional contact changes the tangent's pattern at every
-    iteration (pairs come and go): the analysis of a superset serves them all."""
+def _fit(M, pattern):
+    """(M on an analysed pattern, that pattern): M itself if its pattern is `pattern` (indptr, indices); M with
+    explicit zeros where it has no entry if its entries are a subset of it; else M on the union of both patterns,
+    and that union (to be analysed). Frictional contact changes the tangent's pattern at every iteration (pairs
+    come and go): the analysis of a superset serves them all. One key search for the three cases (the subset test
+    and the union were two passes each: 40-130 ms per call on the contact models, docs/contact.md)."""
     import scipy.sparse as sp
 
     indptr, indices = pattern
     if np.array_equal(indptr, M.indptr) and np.array_equal(indices, M.indices):
-        return M
+        return M, pattern
     n = M.shape[1]
     known, mine = _keys(indptr, indices, n), _keys(M.indptr, M.indices, n)
     at = np.minimum(np.searchsorted(known, mine), len(known) - 1)
-    if not np.array_equal(known[at], mine):
-        return None
+    outside = known[at] != mine
+    if outside.any():
+        extra = mine[outside]
+        # insert into the sorted keys: np.union1d took 9-11 s CPU on 4.8 M keys (numpy 2.4), this 0.1 s
+        known = np.insert(known, np.searchsorted(known, extra), extra)
+        indptr = np.r_[0, np.cumsum(np.bincount(known // n, minlength=M.shape[0]))]
+        indices = (known % n).astype(M.indices.dtype)
+        pattern = (indptr, indices)
+        at = np.searchsorted(known, mine)
     data = np.zeros(len(known))
     data[at] = M.data
-    return sp.csr_matrix((data, indices, indptr), shape=M.shape)
-
-
-def _union(pattern, M):
-    n = M.shape[1]
-    known, mine = _keys(*pattern, n), _keys(M.indptr, M.indices, n)
-    extra = mine[known[np.minimum(np.searchsorted(known, mine), len(known) - 1)] != mine]
-    # insert into the sorted keys: np.union1d took 9-11 s CPU on 4.8 M keys (numpy 2.4), this 0.1 s
-    keys = np.insert(known, np.searchsorted(known, extra), extra)
-    indptr = np.r_[0, np.cumsum(np.bincount(keys // n, minlength=M.shape[0]))]
-    return indptr, (keys % n).astype(M.indices.dtype)
+    return sp.csr_matrix((data, indices, indptr), shape=M.shape), pattern
 
 
 def request_reproducible_mkl():
