@@ -35,6 +35,12 @@ def test_log_of_a_converged_solve_adds_up(block, tmp_path):
     assert cpu == sorted(cpu)
     # the hard increment (Ogden stretch 2.2, 6 iterations) was cut back, and the log says so
     assert res[-1].cutbacks == sum(e["event"] == "cutback" for e in ev) > 0
+    # each increment's relative residuals, one per Newton iteration, the last within the tolerance (1e-8); the
+    # cut-back's all above it
+    assert all(len(e["residuals"]) == e["iterations"] and e["residuals"][-1] < 1e-8 for e in inc)
+    assert [e["residuals"] for e in inc] == res[-1].residual_norms  # the result's per-increment norms
+    cut = [e for e in ev if e["event"] == "cutback"]
+    assert all(len(e["residuals"]) == 6 and min(e["residuals"]) >= 1e-8 for e in cut)
 
 
 def test_log_of_a_failed_solve_names_the_load_reached(block, tmp_path):

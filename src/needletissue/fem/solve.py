@@ -554,7 +554,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     log          : a callable taking one dict per event as it happens (`SolveLog` writes them to a JSON-lines
                    file, so a long run says which load it reached while it runs and where it stopped):
                    "increment" (converged: load_factor, increment, iterations, cpu_s and wall_s since the
-                   start, min_distance_mm per contact item), "cutback" (the failed increment and why),
+                   start, min_distance_mm per contact item, residuals: the relative residual of each Newton
+                   iteration), "cutback" (the failed increment, why, and its residuals),
                    "failed" (ConvergenceError: the load factor reached).
 
     start        : load factor the model's fields (and bodies' states) already hold converged, e.g. a
@@ -593,16 +594,18 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     all_items = [*bodies, *(ld for ld, _ in loads.loads), *items]
     field = model.field
 
-    state = {"it": 0, "fnorm": np.nan}
+    state = {"it": 0, "fnorm": np.nan, "fnorms": []}
     bar = _Progress(progress, lams[-1])
 
     class _Report(fem.Plugin):
         def after_iteration(self, context, st):
             state["it"] = st.iteration + 1
             state["fnorm"] = st.fnorm
+            state["fnorms"].append(float(st.fnorm))  # the increment's residuals, for the log
             bar.update(text=f"step {nsteps + 1} (dλ={dl:.3g}) Newton {st.iteration + 1}: |r| = {st.fnorm:.2e}")
 
-    plugins = [_Report()]
+    report = _Report()
+    plugins = [report]
     searching = bool(items) if linesearch is None else bool(linesearch)
     # the line search's admissibility test needs FElupe's items (det F per body)
     bonded = None if items or searching else _Bodies(all_items, bodies, loads.dof1, loads.dof0, model.ndof,
@@ -634,6 +637,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     mixed = [b for b in bodies if isinstance(b, fem.SolidBodyNearlyIncompressible)]
     pressure = _pressure_plugin(fem, mixed)
     plugins.insert(0, pressure)
+    # the report first: it records an iteration's residual before a plugin may end the increment there
+    plugins.insert(0, plugins.pop(plugins.index(report)))
     lam, nsteps, nit, ncut = check_number("start", start, ge=0), 0, 0, 0
     if lams[0] <= lam:
         raise InputError("start", f"must be below the first load factor {lams[0]:g}, got {lam:g}")
@@ -670,6 +675,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 ext0 = loads.apply(model, lam + dl)
                 taken0 = sub.taken if sub is not None else 0  # substeps count like iterations: converged ones
                 ok, res, why = False, None, ""
+                state["fnorms"] = []
                 ts = time.perf_counter()
                 try:
                     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):  # failures are handled
@@ -707,7 +713,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                     else:
                         step = dl
                     bar.update(lam=lam)
-                    emit("increment", load_factor=lam, increment=dl, iterations=int(res.iterations))
+                    emit("increment", load_factor=lam, increment=dl, iterations=int(res.iterations),
+                         residuals=state["fnorms"])
                     continue
                 # failed: restore the last converged state and halve the increment
                 # (contact: halved at once; the failures there are the barrier's, not the substeps')
@@ -727,7 +734,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 last_du = None  # the path turned: no extrapolation from a failed direction
                 step = dl / 2
                 bar.update(text=f"cut-back to dλ={step:.3g} at λ={lam:.4g} ({why or 'no convergence in %d iterations' % maxiter})")
-                emit("cutback", load_factor=lam, increment=dl, reason=why or f"no convergence in {maxiter} iterations")
+                emit("cutback", load_factor=lam, increment=dl, reason=why or f"no convergence in {maxiter} iterations",
+                     residuals=state["fnorms"])
                 if step < min_step:
                     loads.apply(model, lam)
                     emit("failed", load_factor=lam, steps=nsteps, iterations=nit, cutbacks=ncut)

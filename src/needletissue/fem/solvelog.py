@@ -3,8 +3,8 @@
 A contact solve of the anatomical model runs for tens of minutes; its progress display goes to the
 terminal only, so a run in the background, or one that was stopped, could not say which load it had
 reached. One line per event, flushed at once: "start" (what the caller gives), "increment" (converged:
-load factor, the caller's load, Newton iterations, CPU and wall seconds, smallest barrier distance per
-contact interface), "cutback", then "done", or "failed" / "stopped" with the load reached (also for an
+load factor, the caller's load, Newton iterations and their relative residuals, CPU and wall seconds, smallest
+barrier distance per contact interface), "cutback" (with its residuals), then "done", or "failed" / "stopped" with the load reached (also for an
 exception raised outside the solver's own failure, e.g. SIGTERM or Ctrl-C, when used as a context
 manager).
 """
