@@ -189,14 +189,13 @@ def test_lu_of_a_nonsymmetric_tangent_is_ordered_by_metis_without_refinement_ste
     """The LU (frictional contact's non-symmetric tangents) runs on LU_IPARM: METIS 5's ordering handed to Pardiso
     and no iterative refinement unless a pivot was perturbed (MKL's iparm[0] = 0 refined every solve twice); the same
     solution to round-off as with Pardiso's own ordering, the residual at the double factor's accuracy."""
-    import scipy.sparse as sp
-
+    # the assembled block itself (not _clamped_needle_tangent's symmetrised copy): the fill comparison below is of
+    # this matrix's orderings
     mesh = TaggedMesh.box((30, 4, 4), (12, 3, 3), origin=(0, -2, -2), region="needle")
     K = FEModel(mesh, {"needle": "needle"}, order=2).bodies["needle"].assemble.matrix().tocsr()
     fixed = np.flatnonzero(np.isclose(mesh.points[:, 0], 0.0))
     free = np.setdiff1d(np.arange(K.shape[0]), (3 * fixed[:, None] + np.arange(3)).ravel())
-    A = K[free][:, free]
-    A = (A + 1e-3 * abs(A).max() * sp.random(*A.shape, density=1e-3, random_state=0, format="csr")).tocsr()
+    A = _nonsymmetric(K[free][:, free])
     assert abs(A - A.T).max() > 0
     b = np.random.default_rng(2).normal(size=A.shape[0])
     x, fill = {}, {}
@@ -217,14 +216,8 @@ def test_after_a_nonsymmetric_matrix_the_lu_solves_the_next_ones_without_testing
     """A symmetric matrix is tested and factored by Cholesky; after the first non-symmetric one (implicit friction)
     Pardiso goes to its LU at once (no A - A^T, 40-70 ms per call on the coarse needle model), also for a symmetric
     one, with the solution to round-off."""
-    import scipy.sparse as sp
-
-    mesh = TaggedMesh.box((30, 4, 4), (12, 3, 3), origin=(0, -2, -2), region="needle")
-    K = FEModel(mesh, {"needle": "needle"}).bodies["needle"].assemble.matrix().tocsr()
-    fixed = np.flatnonzero(np.isclose(mesh.points[:, 0], 0.0))
-    free = np.setdiff1d(np.arange(K.shape[0]), (3 * fixed[:, None] + np.arange(3)).ravel())
-    S = K[free][:, free].tocsr()
-    A = (S + 1e-3 * abs(S).max() * sp.random(*S.shape, density=1e-3, random_state=0, format="csr")).tocsr()
+    S = _clamped_needle_tangent()[1]
+    A = _nonsymmetric(S)
     b = np.random.default_rng(2).normal(size=A.shape[0])
     solver = linsolve.make("pardiso")
     x_sym = solver(S, b)
@@ -354,6 +347,13 @@ def _clamped_needle_tangent(n=(30, 4, 4), cells=(12, 3, 3)):
     upper = sp.triu(K[free][:, free], format="csr")
     upper.sort_indices()
     return upper, (upper + sp.triu(upper, 1).T).tocsr()
+
+
+def _nonsymmetric(S):
+    """S plus a sparse random non-symmetric part of 1e-3 of its largest entry (a friction-like tangent), CSR."""
+    import scipy.sparse as sp
+
+    return (S + 1e-3 * abs(S).max() * sp.random(*S.shape, density=1e-3, random_state=0, format="csr")).tocsr()
 
 
 @pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")

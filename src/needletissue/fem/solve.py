@@ -594,18 +594,15 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     all_items = [*bodies, *(ld for ld, _ in loads.loads), *items]
     field = model.field
 
-    state = {"it": 0, "fnorm": np.nan, "fnorms": []}
+    state = {"fnorms": []}  # the increment's residuals, for the log
     bar = _Progress(progress, lams[-1])
 
     class _Report(fem.Plugin):
         def after_iteration(self, context, st):
-            state["it"] = st.iteration + 1
-            state["fnorm"] = st.fnorm
-            state["fnorms"].append(float(st.fnorm))  # the increment's residuals, for the log
+            state["fnorms"].append(float(st.fnorm))
             bar.update(text=f"step {nsteps + 1} (dλ={dl:.3g}) Newton {st.iteration + 1}: |r| = {st.fnorm:.2e}")
 
-    report = _Report()
-    plugins = [report]
+    plugins = []
     searching = bool(items) if linesearch is None else bool(linesearch)
     # the line search's admissibility test needs FElupe's items (det F per body)
     bonded = None if items or searching else _Bodies(all_items, bodies, loads.dof1, loads.dof0, model.ndof,
@@ -638,7 +635,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     pressure = _pressure_plugin(fem, mixed)
     plugins.insert(0, pressure)
     # the report first: it records an iteration's residual before a plugin may end the increment there
-    plugins.insert(0, plugins.pop(plugins.index(report)))
+    plugins.insert(0, _Report())
     lam, nsteps, nit, ncut = check_number("start", start, ge=0), 0, 0, 0
     if lams[0] <= lam:
         raise InputError("start", f"must be below the first load factor {lams[0]:g}, got {lam:g}")
