@@ -2,12 +2,15 @@
 three element sizes in a constant ratio, with the Richardson estimate of the converged value.
 
 All element sizes scale together (tissue at the needles h, needles 2h/3, far field 4h: `fe pelvis`'s
-defaults), so the three runs are one refinement family. Tissue is assigned per tet by its centroid's label
-(docs/pelvis_model.md): the tissue boundaries move with h too, so the observed order includes that
-geometric error, not only the discretisation of one fixed geometry.
+defaults), so the three runs are one refinement family. With `--mesher box` tissue is assigned per tet by its
+centroid's label (docs/pelvis_model.md): the tissue boundaries move with h too, so the observed order includes
+that geometric error, not only the discretisation of one fixed geometry. With `--mesher smooth` the interfaces
+are CGAL's approximations of the same label map's isosurfaces at every size (geometry.graded; pieces of a
+tissue smaller than their local element are merged at each size, far from the needles).
 
     PYTHONPATH=src nice python benchmarks/pelvis_mesh_convergence.py [--sizes 4 3 2.25] \
         [--out src/needletissue/data/pelvis_convergence.json] [--interfaces paper --out benchmarks/results/pelvis_convergence_contact.json]
+        [--mesher smooth --sizes 4.5 3.6 2.88 --out benchmarks/results/pelvis_convergence_smooth.json]
 
 Each size runs in its own process (peak memory per size, a crash loses one size only). Needs ../shared/data.
 """
@@ -26,16 +29,16 @@ FORCES = (100.0, 200.0, 300.0)
 KEYS = ("max_needle_deformation_mm", "clamp_displacement_mm")
 
 
-def run_one(size: float, forces, interfaces: str) -> dict:
+def run_one(size: float, forces, interfaces: str, mesher: str = "box") -> dict:
     """One `fe pelvis` solve in this process: per-force results, mesh size, time, memory."""
     from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
     t = time.perf_counter()
     res = run_pelvis_model(PelvisConfig(forces=list(forces), mesh_size=size, interfaces=interfaces, figures=False,
-                                        out=None))
+                                        out=None, mesher=mesher))
     d = res.to_dict()
     ru = resource.getrusage(resource.RUSAGE_SELF)
-    run = {"mesh_size_mm": size, "tetrahedra": d["mesh"]["tetrahedra"], "dofs": d["mesh"]["dofs"],
+    run = {"mesh_size_mm": size, "mesher": mesher, "tetrahedra": d["mesh"]["tetrahedra"], "dofs": d["mesh"]["dofs"],
            "wall_s": time.perf_counter() - t, "cpu_s": ru.ru_utime + ru.ru_stime,
            "solve_wall_s": d["timing_s"]["solve"], "peak_rss_GiB": ru.ru_maxrss / 1024**2,
            "results": [{k: r[k] for k in ("force_N", *KEYS, "newton_iterations")} for r in d["results"]]}
@@ -65,13 +68,14 @@ def main():
     ap.add_argument("--sizes", type=float, nargs=3, default=[4.0, 3.0, 2.25],
                     help="three tissue element sizes at the needles, mm, in a constant ratio (coarse first)")
     ap.add_argument("--interfaces", default="bonded", help="bonded or paper (fe pelvis --interfaces)")
+    ap.add_argument("--mesher", default="box", help="box or smooth (fe pelvis --mesher)")
     ap.add_argument("--out", default="src/needletissue/data/pelvis_convergence.json",
                     help="results JSON (package data: reproduce compares the frame model with its limits)")
     ap.add_argument("--refit", action="store_true", help="only redo the fits from the runs stored in --out")
     ap.add_argument("--one", type=float, help=argparse.SUPPRESS)  # internal: run one size, print JSON
     a = ap.parse_args()
     if a.one is not None:
-        print(json.dumps(run_one(a.one, FORCES, a.interfaces)))
+        print(json.dumps(run_one(a.one, FORCES, a.interfaces, a.mesher)))
         return
     h = sorted(a.sizes, reverse=True)
     if abs(h[0] / h[1] - h[1] / h[2]) > 1e-3 * h[0] / h[1]:
@@ -80,7 +84,8 @@ def main():
     if a.refit:
         h = [r["mesh_size_mm"] for r in runs]
     for size in h[len(runs):]:
-        p = subprocess.run([sys.executable, __file__, "--one", str(size), "--interfaces", a.interfaces],
+        p = subprocess.run([sys.executable, __file__, "--one", str(size), "--interfaces", a.interfaces,
+                            "--mesher", a.mesher],
                            capture_output=True, text=True)
         if p.returncode:
             sys.exit(f"size {size} mm failed:\n{p.stderr[-3000:]}")
@@ -89,7 +94,7 @@ def main():
         print(f"h = {size:g} mm: {r['tetrahedra']} tets, {r['dofs']} dofs, {r['wall_s']:.0f} s wall, "
               f"{r['cpu_s']:.0f} s CPU, {r['peak_rss_GiB']:.2f} GiB; max needle deformation "
               + " / ".join(f"{x['max_needle_deformation_mm']:.4f}" for x in r["results"]) + " mm", flush=True)
-    study = {"interfaces": a.interfaces, "sizes_mm": h, "runs": runs, "richardson": {}}
+    study = {"interfaces": a.interfaces, "mesher": a.mesher, "sizes_mm": h, "runs": runs, "richardson": {}}
     for i, F in enumerate(FORCES):
         for key in KEYS:
             study["richardson"][f"{key}@{F:g}N"] = fit(h, [r["results"][i][key] for r in runs])

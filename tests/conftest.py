@@ -29,3 +29,17 @@ def run_cli(monkeypatch, capsys):
         return code, out.out, out.err
 
     return run
+
+
+@pytest.fixture(scope="session")
+def cgal():
+    """The graded mesher's CGAL helper (geometry.graded), compiled once per helper cache; skipped where CGAL's
+    headers are missing unless NEEDLETISSUE_REQUIRE_CGAL is set (.ci/run installs them and sets it)."""
+    from needletissue.geometry import graded
+
+    try:
+        return graded.helper()
+    except graded.MissingCGAL as exc:
+        if os.environ.get("NEEDLETISSUE_REQUIRE_CGAL"):
+            pytest.fail(f"NEEDLETISSUE_REQUIRE_CGAL is set but the CGAL helper cannot be built: {exc}")
+        pytest.skip(f"CGAL missing: {exc}")

@@ -32,8 +32,9 @@ def register(app, groups) -> None:
                                        help="Element size 35 mm and more from the needles, mm (default 4x --mesh-size)."),
         mesher: str = typer.Option(None, "--mesher", help="box (the default: gmsh box with exact needles and clamp, "
                                    "tissue by element centroid, graded) or smooth (CT: the `segment` + `mesh` "
-                                   "reconstruction with the needles and clamp inserted exactly; uniform --mesh-size; "
-                                   "the default with --segmentation)."),
+                                   "reconstruction with the needles and clamp inserted exactly, graded to --far-size "
+                                   "by CGAL's smooth interfaces (needs `apt-get install libcgal-dev`; --far-size = "
+                                   "--mesh-size: one size, no CGAL); the default with --segmentation)."),
         order: int = typer.Option(2, "--order", help="Element order: 2 (tetra10, curved needles) or 1 (linear "
                                                      "tets, the paper's; needs fine needles, see docs)."),
         needle_diameter: float = typer.Option(5.0, "--needle-diameter", help="Needle diameter, mm."),

@@ -958,14 +958,17 @@ SEG_REGIONS = {"adipose": "adipose", "other_soft_tissue": "body_wall"}
 
 def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0,
                       needle_size: float | None = None, sacroiliac_gap: float | None = None,
-                      margin_voxels: float = 1.5) -> PelvisMesh:
+                      margin_voxels: float = 1.5, far_size: float | None = None,
+                      refine_radius: float = 35.0) -> PelvisMesh:
     """The model's mesh through the `segment` + `mesh` reconstruction (geometry.smooth: smooth shared tissue
     interfaces, TetGen, optimised elements, cortex by volume) with the needles and the clamp inserted exactly.
 
     seg: imaging.segment.Segmentation of the same CT (LPS); vol: the cropped LabelVolume (RAS) that gives
     the crop box, the needle site and paths and the bone of each bone element (hip / sacrum / femur).
     mesh_size: the smooth route's element size (label maps finer than it are coarsened); needle_size:
-    triangles on the needles and clamp (default 2*mesh_size/3). Tissue regions are the mesh's own region
+    triangles on the needles and clamp (default 2*mesh_size/3); far_size: the size at refine_radius mm from
+    the needles and beyond, graded from mesh_size at them by CGAL's interfaces (geometry.graded; None or
+    mesh_size: one size everywhere, surface nets). Tissue regions are the mesh's own region
     tags; within margin_voxels (coarse) voxels of the needles and the clamp the tissue is the voxel at the
     element's centroid (the corridor in which the exact solids are inserted)."""
     from scipy import ndimage
@@ -978,13 +981,15 @@ def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float 
     paths = needle_paths(vol, site)
     frame, c_bottom, axes, bar_len = _needles_and_clamp(site, paths)
     r = site.diameter / 2
-    coarse = vol.spacing * max(1, int(np.floor(mesh_size / vol.spacing + 1e-9)))
+    is_graded = far_size is not None and far_size > mesh_size   # CGAL meshes the label map at any size: as it is
+    coarse = vol.spacing * (1 if is_graded else max(1, int(np.floor(mesh_size / vol.spacing + 1e-9))))
     solids = needle_solids([(b * RAS_LPS, t * RAS_LPS) for b, t in axes], r, frame * RAS_LPS, c_bottom * RAS_LPS,
                            site.clamp_size, bar_len, needle_size, margin=r + margin_voxels * coarse)
     lo, hi = vol.bounds
     inset = 0.6 * vol.spacing  # inside the first / last voxel: the crop takes exactly the volume's voxels
     box = (-(hi[0] - inset), -(lo[0] + inset), -(hi[1] - inset), -(lo[1] + inset), lo[2] + inset, hi[2] - inset)
-    tm = tet_mesh(seg, config=MeshConfig(size=mesh_size, crop=box, method="smooth"), solids=solids)
+    tm = tet_mesh(seg, config=MeshConfig(size=mesh_size, crop=box, method="smooth", far_size=far_size,
+                                         refine_radius=refine_radius, coarsen=not is_graded), solids=solids)
     pts = tm.points * RAS_LPS
     names = np.empty(len(tm.cells), object)
     for n, ids in tm.regions.items():
@@ -1009,7 +1014,8 @@ def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float 
     surfaces = _surfaces(pts, tm.cells, names, vol, frame, c_bottom, site.clamp_size[1], sacroiliac_gap)
     notes = list(vol.notes) + [
         f"mesh: the `segment` + `mesh` route (smooth shared interfaces, TetGen, cortex by volume) at size "
-        f"{mesh_size} mm with the needles and the clamp inserted exactly (triangles {needle_size:.2f} mm); tissue "
+        f"{mesh_size} mm" + (f" graded to {far_size} mm at {refine_radius} mm (CGAL's interfaces)"
+                             if far_size is not None and far_size > mesh_size else "") + f" with the needles and the clamp inserted exactly (triangles {needle_size:.2f} mm); tissue "
         f"within {margin_voxels} voxels of them by the voxel at the element centroid",
         "segmentation: imaging.segment (other_soft_tissue -> body_wall; bone elements hip / sacrum / femur by "
         "the nearest bone voxel of the label map)",

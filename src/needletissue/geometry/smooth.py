@@ -867,6 +867,7 @@ RELOCATE_TARGET = 20.0      # degrees; relocation works on elements below this (
 SLIVER_TARGET = 13.0        # degrees; remove_slivers works on elements below this (goal: 10; 12 left 9.49 on the whole CT)
 POLISH_TARGET = 20.0        # degrees; relocation once more after the sliver removal (0: none)
 SLIVER_SHIFT = 1 / 3        # x voxel: a flat element this thin may change tissue (its interface moves that much)
+GRADED_SLIVER_SHIFT = 2 / 3  # the same on CGAL's interfaces (pelvis at 4.5 mm: 1/3 leaves 9.4 deg, 2/3 12.0)
 
 
 def _pad_for_solids(seg, arr, start, f, solids):
@@ -989,7 +990,18 @@ def smooth_tet_mesh(seg, cfg, solids: Solids | None = None):
         tissue = work.copy()
         near = solids.label(to_phys(_grid_centres(work, sp)), solids.margin) >= 0
         work[near.reshape(work.shape)] = CORRIDOR
-    surf = smooth_interfaces(work, sp, iterations=cfg.smoothing_iterations, scale=cfg.smoothing_scale, flat=flat)
+    is_graded = cfg.far_size is not None and cfg.far_size > cfg.size
+    if is_graded:   # CGAL's interfaces (geometry.graded); TetGen grades the volume from them
+        from needletissue.geometry import graded
+
+        if solids is None:
+            raise InputError("far_size", "a graded mesh grows from the solids (needles): none were given")
+        h = graded.size_field(work, sp, CORRIDOR, cfg.size, cfg.far_size, cfg.refine_radius)
+        work, n_dropped = graded.drop_small_components(work, sp, h, keep=(CORRIDOR,))
+        surf = graded.graded_interfaces(work, sp, h, flat=flat)
+        surf.info["voxels_of_small_pieces_merged"] = n_dropped
+    else:
+        surf = smooth_interfaces(work, sp, iterations=cfg.smoothing_iterations, scale=cfg.smoothing_scale, flat=flat)
     plc_points, plc_faces = surf.points, surf.faces
     if solids is not None:   # the exact solid surfaces inside the corridor: same PLC, no Boolean needed
         plc_points = np.vstack([surf.points, to_phys.inverse(solids.points)])
@@ -1001,7 +1013,7 @@ def smooth_tet_mesh(seg, cfg, solids: Solids | None = None):
     t1 = time.perf_counter()
     cpu.append(time.process_time())
     bound = cfg.max_volume
-    if bound is None and cfg.size < 0.999 * sp.min():
+    if bound is None and cfg.size < 0.999 * sp.min() and not is_graded:
         bound = regular_tet_volume(cfg.size)
     nodes, elem, attr = _tetgen(plc_points, plc_faces, cfg, bound)
     t2 = time.perf_counter()
@@ -1033,6 +1045,7 @@ def smooth_tet_mesh(seg, cfg, solids: Solids | None = None):
     used, inv = np.unique(elem, return_inverse=True)
     cells = inv.reshape(elem.shape).astype(np.int64)
     nodes = nodes[used]
+    shift = (GRADED_SLIVER_SHIFT if is_graded else SLIVER_SHIFT) * float(sp.min())
     t3 = time.perf_counter()
     cpu.append(time.process_time())
     if OPTIMIZE_THRESHOLD > 0:
@@ -1047,7 +1060,7 @@ def smooth_tet_mesh(seg, cfg, solids: Solids | None = None):
     t5 = time.perf_counter()
     cpu.append(time.process_time())
     # what relocation leaves below the goal sits on interfaces (caps at an interface edge): flips, splits
-    nodes, cells, tag, n_ops = remove_slivers(nodes, cells, tag, SLIVER_TARGET, SLIVER_SHIFT * float(sp.min()),
+    nodes, cells, tag, n_ops = remove_slivers(nodes, cells, tag, SLIVER_TARGET, shift,
                                               pinned=pinned, frozen=frozen)
     t5b = time.perf_counter()
     cpu.append(time.process_time())
@@ -1056,7 +1069,7 @@ def smooth_tet_mesh(seg, cfg, solids: Solids | None = None):
         nodes, n_polish, worst = polish_nodes(nodes, cells, tag, POLISH_TARGET, frozen)
         if worst < SLIVER_TARGET:   # and what that frees, flip / split once more (measured: 9.72 -> 13.03)
             pinned = _move_constraints(nodes, cells, tag, frozen)[2]
-            nodes, cells, tag, n2 = remove_slivers(nodes, cells, tag, SLIVER_TARGET, SLIVER_SHIFT * float(sp.min()),
+            nodes, cells, tag, n2 = remove_slivers(nodes, cells, tag, SLIVER_TARGET, shift,
                                                    pinned=pinned, frozen=frozen)
             nodes, n3, _ = polish_nodes(nodes, cells, tag, POLISH_TARGET, frozen)
             n_ops, n_polish = n_ops + n2, n_polish + n3

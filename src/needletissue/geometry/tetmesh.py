@@ -39,6 +39,10 @@ class MeshConfig:
     method: str = "voxel"                  # "voxel": voxel-face interfaces; "smooth": geometry.smooth
     smoothing_iterations: int = 16         # smooth: surface-nets constrained smoothing passes
     smoothing_scale: float = 0.3           # smooth: max vertex move / voxel diagonal (1 = VTK default)
+    # smooth with solids: element size (mm) at refine_radius mm from the solids and beyond, `size` at them
+    # (CGAL's interfaces, geometry.graded); None or `size`: one size everywhere (surface nets)
+    far_size: float | None = None
+    refine_radius: float = 35.0            # mm: where the graded size reaches far_size
 
     def validate(self) -> "MeshConfig":
         check_number("size", self.size, gt=0.2, le=50)
@@ -50,6 +54,11 @@ class MeshConfig:
             raise InputError("method", f"unknown meshing method {self.method!r}; known: voxel, smooth")
         check_number("smoothing_iterations", self.smoothing_iterations, ge=0, le=500)
         check_number("smoothing_scale", self.smoothing_scale, ge=0, le=2)
+        if self.far_size is not None:
+            check_number("far_size", self.far_size, ge=self.size, le=60)
+            if self.method != "smooth":
+                raise InputError("far_size", "a graded size needs method='smooth'")
+        check_number("refine_radius", self.refine_radius, gt=0, le=500)
         if self.max_volume is not None:
             check_number("max_volume", self.max_volume, gt=0)
         if self.crop is not None:

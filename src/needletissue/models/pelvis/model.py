@@ -80,7 +80,9 @@ class PelvisConfig:
     mesher          "box" (gmsh box fragmented with the needles and the clamp, tissue per element by its
                     smoothed centroid label; graded around the needles) or "smooth" (CT only: the `segment` +
                     `mesh` reconstruction, geometry.smooth, with the needles and the clamp inserted exactly;
-                    uniform size mesh_size, the label map coarsened to it; needle_size on the solids). With
+                    graded like the box from mesh_size to far_size by CGAL's interfaces, geometry.graded, which
+                    needs CGAL's headers; far_size = mesh_size: one size, surface nets, the label map coarsened
+                    to it; needle_size on the solids). With
                     "smooth" the site, paths and crop come from the same segmentation (segmentation_label_volume)
     segmentation    folder written by `needletissue segment` (tissues.nii.gz, bones.nii.gz): the label map of
                     the smooth mesher instead of segmenting ct + labels again
@@ -328,7 +330,9 @@ def build(config: PelvisConfig):
         site = gp.standard_site(vol, config.site, **kw)
     vol = gp.crop_to_site(vol, site)
     if seg is not None:
-        return vol, gp.build_mesh_smooth(seg, vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size)
+        far = 4 * config.mesh_size if config.far_size is None else config.far_size
+        return vol, gp.build_mesh_smooth(seg, vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size,
+                                         far_size=far, refine_radius=config.refine_radius)
     mesh = gp.build_mesh(vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size,
                          far_size=config.far_size, cortical_thickness=config.cortical_thickness,
                          refine_radius=config.refine_radius, cache=True)   # $NEEDLETISSUE_MESH_CACHE=0: off
