@@ -49,8 +49,10 @@ def _raw_boundaries(arr, sp):
                                      pad_background=True, scalars="labels")
 
 
-def mesh_fidelity(seg, mesh, config) -> MeshFidelity:
-    """Measure `mesh` (a TetMesh from tet_mesh(seg, config=config)) against its label map."""
+def mesh_fidelity(seg, mesh, config, solids=()) -> MeshFidelity:
+    """Measure `mesh` (a TetMesh from tet_mesh(seg, config=config)) against its label map. solids: regions
+    that are not in the label map (needles, clamp): no volume or Dice of their own, outside in the Dice of
+    the tissues, and their surfaces left out of the Hausdorff distance."""
     import pyvista as pv
 
     from needletissue.geometry.tetmesh import _crop_and_coarsen, _row_groups, _sub_image, tet_quality
@@ -65,7 +67,8 @@ def mesh_fidelity(seg, mesh, config) -> MeshFidelity:
     vol = q["volume"]
     vox = float(np.prod(sp))
     volume_error = {}
-    for n, ids in mesh.regions.items():
+    regions = {n: ids for n, ids in mesh.regions.items() if n not in solids}
+    for n, ids in regions.items():
         nv = int(np.count_nonzero(arr == seg.tissues[n]))
         volume_error[n] = float(vol[ids].sum() / (nv * vox) - 1.0) if nv else float("inf")
     bones_present = [n for n in BONE if n in mesh.regions]
@@ -75,7 +78,7 @@ def mesh_fidelity(seg, mesh, config) -> MeshFidelity:
     # voxelise the mesh: region tag (1-based, 0 outside) at every voxel centre
     tag = np.zeros(len(mesh.cells), np.int32)
     ids_of = {}
-    for i, (n, ids) in enumerate(mesh.regions.items(), start=1):
+    for i, (n, ids) in enumerate(regions.items(), start=1):
         tag[ids] = i
         ids_of[n] = i
     cells = np.hstack([np.full((len(mesh.cells), 1), 4), mesh.cells]).ravel()
@@ -90,7 +93,7 @@ def mesh_fidelity(seg, mesh, config) -> MeshFidelity:
     valid = np.asarray(smp.point_data["vtkValidPointMask"]).reshape(arr.shape).astype(bool)
     got = np.where(valid, got, 0)
     dice = {}
-    groups = {n: [n] for n in mesh.regions}
+    groups = {n: [n] for n in regions}
     bones = [n for n in BONE if n in mesh.regions]
     if bones:
         groups["bone"] = bones
@@ -115,7 +118,14 @@ def mesh_fidelity(seg, mesh, config) -> MeshFidelity:
     pair = order[cnt[inv[order]] == 2].reshape(-1, 2)
     inter = pair[mtag[owner[pair[:, 0]]] != mtag[owner[pair[:, 1]]], 0]
     free = np.flatnonzero(cnt[inv] == 1)
-    sf = faces[np.concatenate([inter, free])]
+    sf = np.concatenate([inter, free])
+    if solids:   # faces of a solid's elements are no tissue boundary of the label map
+        solid = np.zeros(len(mesh.cells), bool)
+        solid[np.concatenate([mesh.regions[n] for n in solids if n in mesh.regions])] = True
+        sf = sf[~solid[owner[sf]]]
+        inter_s = pair[solid[owner[pair[:, 0]]] != solid[owner[pair[:, 1]]]]
+        sf = sf[~np.isin(sf, inter_s.ravel())]
+    sf = faces[sf]
     surf = pv.PolyData(x, np.hstack([np.full((len(sf), 1), 3), sf]).ravel()).clean()
     a2b = np.abs(pv.PolyData(np.asarray(surf.points)).compute_implicit_distance(raw)["implicit_distance"])
     b2a = np.abs(pv.PolyData(np.asarray(raw.points)).compute_implicit_distance(surf)["implicit_distance"])
