@@ -304,8 +304,14 @@ def build(config: PelvisConfig):
     from needletissue.geometry import pelvis as gp
 
     seg = None
+    far = 4 * config.mesh_size if config.far_size is None else config.far_size
     if config.mesher == "smooth":   # one label map for the site, the paths and the mesh: the segmentation's
         from needletissue.imaging.segment import Segmentation, SegmentationConfig, segment
+
+        if far > config.mesh_size:   # the CGAL helper first: a missing CGAL is named before any work
+            from needletissue.geometry.graded import helper
+
+            helper()
 
         if config.segmentation:
             seg = Segmentation.load(config.segmentation)
@@ -330,7 +336,6 @@ def build(config: PelvisConfig):
         site = gp.standard_site(vol, config.site, **kw)
     vol = gp.crop_to_site(vol, site)
     if seg is not None:
-        far = 4 * config.mesh_size if config.far_size is None else config.far_size
         return vol, gp.build_mesh_smooth(seg, vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size,
                                          far_size=far, refine_radius=config.refine_radius)
     mesh = gp.build_mesh(vol, site, mesh_size=config.mesh_size, needle_size=config.needle_size,
