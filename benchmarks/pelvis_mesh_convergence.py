@@ -72,6 +72,7 @@ def main():
     ap.add_argument("--out", default="src/needletissue/data/pelvis_convergence.json",
                     help="results JSON (package data: reproduce compares the frame model with its limits)")
     ap.add_argument("--refit", action="store_true", help="only redo the fits from the runs stored in --out")
+    ap.add_argument("--resume", action="store_true", help="keep the runs stored in --out, run the other sizes")
     ap.add_argument("--one", type=float, help=argparse.SUPPRESS)  # internal: run one size, print JSON
     a = ap.parse_args()
     if a.one is not None:
@@ -80,7 +81,7 @@ def main():
     h = sorted(a.sizes, reverse=True)
     if abs(h[0] / h[1] - h[1] / h[2]) > 1e-3 * h[0] / h[1]:
         ap.error(f"--sizes must be in a constant ratio, got {h}")
-    runs = json.loads(Path(a.out).read_text())["runs"] if a.refit else []
+    runs = json.loads(Path(a.out).read_text())["runs"] if a.refit or (a.resume and Path(a.out).exists()) else []
     if a.refit:
         h = [r["mesh_size_mm"] for r in runs]
     for size in h[len(runs):]:
@@ -90,6 +91,8 @@ def main():
         if p.returncode:
             sys.exit(f"size {size} mm failed:\n{p.stderr[-3000:]}")
         runs.append(json.loads(p.stdout.strip().splitlines()[-1]))
+        Path(a.out).write_text(json.dumps({"interfaces": a.interfaces, "mesher": a.mesher, "sizes_mm": h,
+                                           "runs": runs}, indent=1) + "\n")   # a later failure keeps this run
         r = runs[-1]
         print(f"h = {size:g} mm: {r['tetrahedra']} tets, {r['dofs']} dofs, {r['wall_s']:.0f} s wall, "
               f"{r['cpu_s']:.0f} s CPU, {r['peak_rss_GiB']:.2f} GiB; max needle deformation "
