@@ -981,15 +981,15 @@ def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float 
     paths = needle_paths(vol, site)
     frame, c_bottom, axes, bar_len = _needles_and_clamp(site, paths)
     r = site.diameter / 2
-    is_graded = far_size is not None and far_size > mesh_size   # CGAL meshes the label map at any size: as it is
-    coarse = vol.spacing * (1 if is_graded else max(1, int(np.floor(mesh_size / vol.spacing + 1e-9))))
-    solids = needle_solids([(b * RAS_LPS, t * RAS_LPS) for b, t in axes], r, frame * RAS_LPS, c_bottom * RAS_LPS,
-                           site.clamp_size, bar_len, needle_size, margin=r + margin_voxels * coarse)
     lo, hi = vol.bounds
     inset = 0.6 * vol.spacing  # inside the first / last voxel: the crop takes exactly the volume's voxels
     box = (-(hi[0] - inset), -(lo[0] + inset), -(hi[1] - inset), -(lo[1] + inset), lo[2] + inset, hi[2] - inset)
-    tm = tet_mesh(seg, config=MeshConfig(size=mesh_size, crop=box, method="smooth", far_size=far_size,
-                                         refine_radius=refine_radius, coarsen=not is_graded), solids=solids)
+    cfg = MeshConfig(size=mesh_size, crop=box, method="smooth", far_size=far_size, refine_radius=refine_radius)
+    cfg.coarsen = not cfg.graded   # CGAL meshes the label map at any size: as it is
+    coarse = vol.spacing * (1 if cfg.graded else max(1, int(np.floor(mesh_size / vol.spacing + 1e-9))))
+    solids = needle_solids([(b * RAS_LPS, t * RAS_LPS) for b, t in axes], r, frame * RAS_LPS, c_bottom * RAS_LPS,
+                           site.clamp_size, bar_len, needle_size, margin=r + margin_voxels * coarse)
+    tm = tet_mesh(seg, config=cfg, solids=solids)
     pts = tm.points * RAS_LPS
     names = np.empty(len(tm.cells), object)
     for n, ids in tm.regions.items():
@@ -1014,8 +1014,8 @@ def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float 
     surfaces = _surfaces(pts, tm.cells, names, vol, frame, c_bottom, site.clamp_size[1], sacroiliac_gap)
     notes = list(vol.notes) + [
         f"mesh: the `segment` + `mesh` route (smooth shared interfaces, TetGen, cortex by volume) at size "
-        f"{mesh_size} mm" + (f" graded to {far_size} mm at {refine_radius} mm (CGAL's interfaces)"
-                             if far_size is not None and far_size > mesh_size else "") + f" with the needles and the clamp inserted exactly (triangles {needle_size:.2f} mm); tissue "
+        f"{mesh_size} mm" + (f" graded to {far_size} mm at {refine_radius} mm (CGAL's interfaces)" if cfg.graded else "")
+        + f" with the needles and the clamp inserted exactly (triangles {needle_size:.2f} mm); tissue "
         f"within {margin_voxels} voxels of them by the voxel at the element centroid",
         "segmentation: imaging.segment (other_soft_tissue -> body_wall; bone elements hip / sacrum / femur by "
         "the nearest bone voxel of the label map)",

@@ -990,8 +990,7 @@ def smooth_tet_mesh(seg, cfg, solids: Solids | None = None):
         tissue = work.copy()
         near = solids.label(to_phys(_grid_centres(work, sp)), solids.margin) >= 0
         work[near.reshape(work.shape)] = CORRIDOR
-    is_graded = cfg.far_size is not None and cfg.far_size > cfg.size
-    if is_graded:   # CGAL's interfaces (geometry.graded); TetGen grades the volume from them
+    if cfg.graded:   # CGAL's interfaces (geometry.graded); TetGen grades the volume from them
         from needletissue.geometry import graded
 
         if solids is None:
@@ -1013,7 +1012,7 @@ def smooth_tet_mesh(seg, cfg, solids: Solids | None = None):
     t1 = time.perf_counter()
     cpu.append(time.process_time())
     bound = cfg.max_volume
-    if bound is None and cfg.size < 0.999 * sp.min() and not is_graded:
+    if bound is None and cfg.size < 0.999 * sp.min() and not cfg.graded:
         bound = regular_tet_volume(cfg.size)
     nodes, elem, attr = _tetgen(plc_points, plc_faces, cfg, bound)
     t2 = time.perf_counter()
@@ -1045,7 +1044,7 @@ def smooth_tet_mesh(seg, cfg, solids: Solids | None = None):
     used, inv = np.unique(elem, return_inverse=True)
     cells = inv.reshape(elem.shape).astype(np.int64)
     nodes = nodes[used]
-    shift = (GRADED_SLIVER_SHIFT if is_graded else SLIVER_SHIFT) * float(sp.min())
+    shift = (GRADED_SLIVER_SHIFT if cfg.graded else SLIVER_SHIFT) * float(sp.min())
     t3 = time.perf_counter()
     cpu.append(time.process_time())
     if OPTIMIZE_THRESHOLD > 0:

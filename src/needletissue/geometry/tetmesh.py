@@ -67,6 +67,11 @@ class MeshConfig:
                 raise InputError("crop", f"expected xmin<xmax, ymin<ymax, zmin<zmax (LPS mm), got {self.crop}")
         return self
 
+    @property
+    def graded(self) -> bool:
+        """Sizes grow from `size` at the solids to `far_size` (CGAL's interfaces, geometry.graded)."""
+        return self.far_size is not None and self.far_size > self.size
+
     def tetgen_bounds(self) -> tuple[float, float]:
         """(radius-edge ratio, min dihedral deg) for TetGen: the fields, else the route's defaults."""
         ratio, dihedral = TETGEN_BOUNDS[self.method]
