@@ -78,6 +78,7 @@ def helper() -> Path:
     """The compiled helper: from the helper cache (bin_cache_dir, keyed by the source, the compiler and the
     CGAL version), else compiled there now (~35 s), or in a temporary folder when that cannot be written."""
     from needletissue.cache import cache_key
+    from needletissue.runinfo import current_umask
 
     cxx = os.environ.get(CXX_ENV, "g++")
     version = cgal_version(cxx)
@@ -99,7 +100,7 @@ def helper() -> Path:
             Path(name).unlink(missing_ok=True)
             raise MissingCGAL(f"compiling {SOURCE.name} against CGAL {version} failed:\n{r.stderr[-2000:]}\n"
                               f"{INSTALL_HINT}")
-        os.chmod(name, 0o755)
+        os.chmod(name, 0o777 & ~current_umask())   # an executable, readable as the umask allows
         os.replace(name, target)   # atomic: a concurrent build of the same key writes the same bytes
     _HELPERS[key] = target
     return target
