@@ -29,7 +29,8 @@ def register(app, groups) -> None:
         needle_size: float = typer.Option(None, "--needle-size",
                                           help="Needle element size, mm (default 2/3 of --mesh-size)."),
         far_size: float = typer.Option(None, "--far-size",
-                                       help="Element size 35 mm and more from the needles, mm (default 4x --mesh-size)."),
+                                       help="Element size 35 mm and more from the needles, mm (default 4x --mesh-size); "
+                                            "with --mesher smooth, = --mesh-size meshes at one size."),
         mesher: str = typer.Option(None, "--mesher", help="box (the default: gmsh box with exact needles and clamp, "
                                    "tissue by element centroid, graded) or smooth (CT: the `segment` + `mesh` "
                                    "reconstruction with the needles and clamp inserted exactly, graded to --far-size "
