@@ -99,6 +99,8 @@ def test_bad_graded_settings_name_the_field():
         graded.mesh_labels(np.ones((4, 4, 4), np.uint8), (1, 1, 1), np.zeros((4, 4, 4)))
     with pytest.raises(InputError, match="labels"):
         graded.mesh_labels(np.zeros((4, 4, 4), np.uint8), (1, 1, 1), np.ones((4, 4, 4)))
+    with pytest.raises(InputError, match="labels must be 0..255"):
+        graded.mesh_labels(np.full((4, 4, 4), 300), (1, 1, 1), np.ones((4, 4, 4)))
 
 
 def test_fe_pelvis_smooth_without_cgal_says_what_to_install(run_cli, monkeypatch):

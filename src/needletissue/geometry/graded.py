@@ -155,6 +155,8 @@ def mesh_labels(arr: np.ndarray, spacing, cell_size: np.ndarray, facet_size: np.
     spacing, x y z). Sizes are edge lengths (mm; CGAL bounds circumradii: a regular tetrahedron's is
     sqrt(6)/4 of its edge, an equilateral triangle's 1/sqrt(3)); facet_distance: how far an interface
     triangle may lie from the label boundary, x its edge size. Returns (points, cells, labels, info)."""
+    if np.asarray(arr).size and (np.min(arr) < 0 or np.max(arr) > 255):
+        raise InputError("labels", f"labels must be 0..255 (one byte), got {np.min(arr)}..{np.max(arr)}")
     arr = np.ascontiguousarray(arr, np.uint8)
     if arr.ndim != 3 or min(arr.shape) < 2 or not arr.any():
         raise InputError("labels", f"expected a 3D label array with a labelled voxel, got shape {arr.shape}")
