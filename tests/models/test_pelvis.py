@@ -220,7 +220,7 @@ def test_graded_smooth_mesh_keeps_the_tissues_and_grows_away_from_the_needles(gr
     their label volume within 3 % (measured: <= 2.4 %; the convoluted body wall loses its sub-element pieces
     far away: -5.6 %), elements 35 mm and more from the pins are over twice as long as those within 10 mm,
     and the whole crop is a fifth of the uniform 3 mm mesh's 632 k tets."""
-    from needletissue.models.pelvis.model import mesh_quality
+    from needletissue.models.pelvis.model import _axis_distance, mesh_quality
 
     v = gp.crop_to_site(gp.segmentation_label_volume(seg), site)
     q = mesh_quality(graded, v)
@@ -229,12 +229,7 @@ def test_graded_smooth_mesh_keeps_the_tissues_and_grows_away_from_the_needles(gr
                  "adipose"):
         assert abs(err[name]) < 0.03, (name, err[name])
     assert -0.10 < err["body_wall"] < 0
-    c = graded.points[graded.cells].mean(1)
-    d = np.full(len(c), np.inf)
-    for b, t in graded.needle_axes:
-        u = (t - b) / np.linalg.norm(t - b)
-        w = c - b
-        d = np.minimum(d, np.linalg.norm(w - np.outer(np.clip(w @ u, 0, np.linalg.norm(t - b)), u), axis=1))
+    d = _axis_distance(graded.points[graded.cells].mean(1), graded.needle_axes)
     e = np.linalg.norm(graded.points[graded.cells[:, 0]] - graded.points[graded.cells[:, 1]], axis=1)
     assert np.median(e[d > 35]) > 2 * np.median(e[d < 10])
     assert len(graded.cells) < 632_017 / 5
