@@ -116,16 +116,15 @@ def mesh_fidelity(seg, mesh, config, solids=()) -> MeshFidelity:
     key = np.sort(faces, axis=1)
     order, inv, cnt = _row_groups(key)                 # order = argsort(inv, kind="stable")
     pair = order[cnt[inv[order]] == 2].reshape(-1, 2)
-    inter = pair[mtag[owner[pair[:, 0]]] != mtag[owner[pair[:, 1]]], 0]
+    # faces of a solid's elements are no tissue boundary of the label map
+    solid = np.zeros(len(mesh.cells), bool)
+    for n in solids:
+        solid[mesh.regions.get(n, [])] = True
+    a, b = owner[pair[:, 0]], owner[pair[:, 1]]
+    inter = pair[(mtag[a] != mtag[b]) & ~solid[a] & ~solid[b], 0]
     free = np.flatnonzero(cnt[inv] == 1)
-    sf = np.concatenate([inter, free])
-    if solids:   # faces of a solid's elements are no tissue boundary of the label map
-        solid = np.zeros(len(mesh.cells), bool)
-        solid[np.concatenate([mesh.regions[n] for n in solids if n in mesh.regions])] = True
-        sf = sf[~solid[owner[sf]]]
-        inter_s = pair[solid[owner[pair[:, 0]]] != solid[owner[pair[:, 1]]]]
-        sf = sf[~np.isin(sf, inter_s.ravel())]
-    sf = faces[sf]
+    free = free[~solid[owner[free]]]
+    sf = faces[np.concatenate([inter, free])]
     surf = pv.PolyData(x, np.hstack([np.full((len(sf), 1), 3), sf]).ravel()).clean()
     a2b = np.abs(pv.PolyData(np.asarray(surf.points)).compute_implicit_distance(raw)["implicit_distance"])
     b2a = np.abs(pv.PolyData(np.asarray(raw.points)).compute_implicit_distance(surf)["implicit_distance"])
