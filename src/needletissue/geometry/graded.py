@@ -76,8 +76,9 @@ def bin_cache_dir() -> Path:
 
 def helper() -> Path:
     """The compiled helper: from the helper cache (bin_cache_dir, keyed by the source, the compiler and the
-    CGAL version), else compiled there now (~35 s), or in a temporary folder when that cannot be written."""
-    from needletissue.cache import cache_key
+    CGAL version; an entry whose bytes fail their checksum is built again), else compiled now (~35 s) and
+    stored there; where the cache cannot be written, this process's own copy in a temporary folder."""
+    from needletissue.cache import cache_key, read_entry, write_entry
     from needletissue.runinfo import current_umask
 
     cxx = os.environ.get(CXX_ENV, "g++")
@@ -86,24 +87,28 @@ def helper() -> Path:
     key = cache_key({"cgal": version, "compiler": compiler, "cxx": cxx}, (SOURCE,))
     if key in _HELPERS and os.access(_HELPERS[key], os.X_OK):
         return _HELPERS[key]
-    target = bin_cache_dir() / f"cgal_labels_mesh-{key}"
-    if not os.access(target, os.X_OK):
-        try:
-            target.parent.mkdir(parents=True, exist_ok=True)
-            fd, name = tempfile.mkstemp(dir=target.parent, prefix=".cgal_labels_mesh.")
-        except OSError:   # a read-only home: this process's own copy
-            target = Path(tempfile.mkdtemp(prefix="needletissue-cgal-")) / "cgal_labels_mesh"
-            fd, name = tempfile.mkstemp(dir=target.parent)
-        os.close(fd)   # an executable still open for writing cannot run (ETXTBSY)
-        r = _run([cxx, "-O2", "-DNDEBUG", "-std=c++17", str(SOURCE), "-o", name, "-lgmp", "-lmpfr", "-lpthread"])
+    folder, name = bin_cache_dir(), f"cgal_labels_mesh-{key}"
+    exe = folder / name
+    if read_entry(folder, name, "") is None or not os.access(exe, os.X_OK):
+        built = Path(tempfile.mkdtemp(prefix="needletissue-cgal-")) / "cgal_labels_mesh"
+        r = _run([cxx, "-O2", "-DNDEBUG", "-std=c++17", str(SOURCE), "-o", str(built), "-lgmp", "-lmpfr", "-lpthread"])
         if r.returncode != 0:
-            Path(name).unlink(missing_ok=True)
+            shutil.rmtree(built.parent, ignore_errors=True)
             raise MissingCGAL(f"compiling {SOURCE.name} against CGAL {version} failed:\n{r.stderr[-2000:]}\n"
                               f"{INSTALL_HINT}")
-        os.chmod(name, 0o777 & ~current_umask())   # an executable, readable as the umask allows
-        os.replace(name, target)   # atomic: a concurrent build of the same key writes the same bytes
-    _HELPERS[key] = target
-    return target
+        write_entry(folder, name, "", built.read_bytes(), {"cgal": version, "compiler": compiler})
+        try:   # an executable, readable as the umask allows
+            os.chmod(exe, 0o777 & ~current_umask())
+            ok = read_entry(folder, name, "") is not None
+        except OSError:   # a cache that cannot be written: this process's copy
+            ok = False
+        if ok:
+            shutil.rmtree(built.parent, ignore_errors=True)
+        else:
+            os.chmod(built, 0o777 & ~current_umask())
+            exe = built
+    _HELPERS[key] = exe
+    return exe
 
 
 def size_field(arr: np.ndarray, spacing, focus: int, size: float, far_size: float, radius: float) -> np.ndarray:
