@@ -1,10 +1,10 @@
 """Quality / fidelity / speed of the anatomical model's smooth mesh (`fe pelvis --mesher smooth`): the uniform
-surface-nets route against the graded CGAL route (geometry.graded), on the example CT's model crop with the
-needles and the clamp inserted exactly.
+surface-nets route against the graded CGAL route (geometry.graded), on the model crop of the example CT (or of the
+SSM's label volume) with the needles and the clamp inserted exactly.
 
-    PYTHONPATH=src python benchmarks/bench_graded_pelvis_mesh.py [--sizes 3] [--far 12] [--uniform]
+    PYTHONPATH=src python benchmarks/bench_graded_pelvis_mesh.py [--source ct|ssm] [--sizes 3] [--far 4] [--uniform]
 
-Each row is one `build_mesh_smooth` (segmentation done once before). Fidelity is geometry.fidelity's on the
+Each row is one `build_mesh_smooth` (the label map made once before, as `fe pelvis --mesher smooth` makes it). Fidelity is geometry.fidelity's on the
 tissue regions (the label map the mesh was made from; the needles and the clamp are left out, so the voxels
 they occupy count as outside in Dice). Goals (issue 16): min dihedral >= 10 deg, 1st percentile >= 20 deg;
 every tissue within 3 % of its label volume; Dice >= 0.9 for bone and muscles; Hausdorff 95 % <= one voxel;
@@ -62,18 +62,17 @@ def main():
     ap.add_argument("--sizes", type=float, nargs="+", default=[3.0], help="element sizes at the needles, mm")
     ap.add_argument("--far", type=float, default=4.0, help="far size as a multiple of the size (graded rows)")
     ap.add_argument("--uniform", action="store_true", help="also the uniform surface-nets route at each size")
+    ap.add_argument("--source", choices=("ct", "ssm"), default="ct", help="the example CT or the mean SSM")
     a = ap.parse_args()
     from needletissue.geometry import pelvis as gp
-    from needletissue.imaging.segment import segment
+    from needletissue.models.pelvis.model import PelvisConfig, smooth_label_map
 
-    d = gp.data_dir() / "pelvis_ct"
     t = time.perf_counter()
-    seg = segment(d / "example_ct.nii.gz", d / "example_seg_fast_force_split.nii.gz")
+    seg, vol = smooth_label_map(PelvisConfig(source=a.source, mesher="smooth"))
     seg_wall = time.perf_counter() - t
-    vol = gp.segmentation_label_volume(seg)
     site = gp.standard_site(vol, "supra_acetabular")
     v = gp.crop_to_site(vol, site)
-    print(f"segmentation {seg_wall:.1f} s wall; load average {os.getloadavg()[0]:.1f}")
+    print(f"{a.source}: label map {seg_wall:.1f} s wall; load average {os.getloadavg()[0]:.1f}")
     print("| route | size (mm) | tets | wall / CPU (s) | min / 1st pct dihedral (deg), < 10 | worst tissue volume |"
           " min Dice (bone, muscles) | Hausdorff 95 % (voxels) |")
     print("|---|---|---|---|---|---|---|---|")

@@ -32,8 +32,8 @@ def register(app, groups) -> None:
                                        help="Element size 35 mm and more from the needles, mm (default 4x --mesh-size); "
                                             "with --mesher smooth, = --mesh-size meshes at one size."),
         mesher: str = typer.Option(None, "--mesher", help="box (the default: gmsh box with exact needles and clamp, "
-                                   "tissue by element centroid, graded) or smooth (CT: the `segment` + `mesh` "
-                                   "reconstruction with the needles and clamp inserted exactly, graded to --far-size "
+                                   "tissue by element centroid, graded) or smooth (the `segment` + `mesh` "
+                                   "reconstruction of the CT's or the SSM's label map with the needles and clamp inserted exactly, graded to --far-size "
                                    "by CGAL's smooth interfaces (needs `apt-get install libcgal-dev`; --far-size = "
                                    "--mesh-size: one size, no CGAL); the default with --segmentation)."),
         order: int = typer.Option(2, "--order", help="Element order: 2 (tetra10, curved needles) or 1 (linear "

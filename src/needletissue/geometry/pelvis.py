@@ -230,6 +230,50 @@ def segmentation_label_volume(seg, side: str = "right") -> LabelVolume:
     return vol
 
 
+def label_volume_segmentation(vol: LabelVolume, cortical_thickness: float = 1.5):
+    """The Segmentation (imaging.segment, LPS image) of a LabelVolume that has no CT (the SSM's): what the
+    smooth mesher meshes. Bone split into cortical / cancellous as `segment` splits it, muscles by name,
+    body_wall as other_soft_tissue, and bones.nii.gz with hip / sacrum / femur of vol.side, so that
+    segmentation_label_volume gives the same labels back."""
+    import SimpleITK as sitk
+
+    from needletissue.imaging.segment import BONE_IDS, TISSUE_IDS, Segmentation, SegmentationConfig, split_bone
+
+    cfg = SegmentationConfig(cortical_thickness=cortical_thickness).validate()
+    lab = vol.labels.transpose(2, 1, 0)          # (z, y, x) index order of a SimpleITK array
+    sp = np.full(3, vol.spacing)
+    cortical, cancellous, split = split_bone(np.isin(lab, (1, 2, 3)), sp, cfg.cortical_thickness, cfg.split_spacing)
+    out = np.zeros(lab.shape, np.uint8)
+    bones = np.zeros(lab.shape, np.uint8)
+    names = {"hip_bone": f"hip_{vol.side}", "sacrum": "sacrum", "femur": f"femur_{vol.side}"}
+    tissues = {}
+    for i, name in TISSUES.items():
+        m = lab == i
+        if not m.any():
+            continue
+        if name in names:
+            bones[m] = BONE_IDS[names[name]]
+            continue
+        tname = {"body_wall": "other_soft_tissue"}.get(name, name)
+        out[m] = TISSUE_IDS[tname]
+        tissues[tname] = TISSUE_IDS[tname]
+    out[cancellous], out[cortical] = TISSUE_IDS["cancellous_bone"], TISSUE_IDS["cortical_bone"]
+    tissues.update({n: TISSUE_IDS[n] for n, m in (("cortical_bone", cortical), ("cancellous_bone", cancellous))
+                    if m.any()})
+
+    def image(a):   # RAS index axes x, y -> LPS: the same voxels with x and y pointing the other way
+        img = sitk.GetImageFromArray(a)
+        img.SetSpacing(sp.tolist())
+        img.SetOrigin((vol.origin * RAS_LPS).tolist())
+        img.SetDirection(np.diag(RAS_LPS).ravel().tolist())
+        return img
+
+    seg = Segmentation(labels=image(out), tissues=dict(sorted(tissues.items(), key=lambda kv: kv[1])),
+                       source=vol.source, stats={"bone_split": split}, bones=image(bones))
+    seg.stats["volumes_mm3"] = seg.volumes_mm3()
+    return seg
+
+
 def ssm_label_volume(side: str = "right", spacing: float = 2.0, muscle_mm: float = 22.0,
                      adipose_mm: float = 10.0) -> LabelVolume:
     """Tissue labels around the mean SSM hip bone and sacrum (bone surfaces only).
@@ -770,8 +814,8 @@ def _largest_face_component(tets, names):
 
 
 def _surfaces(pts, tets, names, vol, frame, c_bottom, w_clamp, si_gap):
-    """Boundary sets: femur_fixed (CT: femur faces on the crop's bottom plane; SSM: the femoral-head
-    proxy's faces), sacrum_fixed (superior
+    """Boundary sets: femur_fixed (the femur's faces on the crop's bottom plane; a femur without any, the
+    SSM's femoral-head proxy: all its faces), sacrum_fixed (superior
     sacral surface: sacrum boundary faces within 6 mm of the sacrum's top), sacroiliac_joint (hip-bone
     faces shared with the sacrum or within si_gap of it), midline (all boundary faces on the medial crop
     plane), gripper (the clamp bar's two side faces at +-width/2, where the robot's jaws hold it and the
@@ -796,10 +840,9 @@ def _surfaces(pts, tets, names, vol, frame, c_bottom, w_clamp, si_gap):
     other[order[pair]] = fo[order[pair + 1]]
     other[order[pair + 1]] = fo[order[pair]]
     out = {}
-    if vol.source.startswith("ssm"):  # femoral-head proxy: its whole surface is the fixed hip joint
+    out["femur_fixed"] = bnd & (fo == "femur") & on(2, lo[2])   # the femur's cut
+    if not out["femur_fixed"].any():   # no cut: the SSM's femoral-head proxy, whose whole surface is the fixed joint
         out["femur_fixed"] = (fo == "femur") & (bnd | np.isin(other, ("hip_cortical", "hip_cancellous")))
-    else:
-        out["femur_fixed"] = bnd & (fo == "femur") & on(2, lo[2])
     sac_top = fc[fo == "sacrum", 2].max()
     # outer faces of the sacrum (free, or against soft tissue as in the SSM's offset layers)
     sac_outer = (fo == "sacrum") & (bnd | ((other != "sacrum") & (other != 0)))

@@ -78,12 +78,13 @@ class PelvisConfig:
     needle_size     needle element size, mm (default 2*mesh_size/3; quadratic tets)
     far_size        element size far (refine_radius) from the needles, mm (default 4*mesh_size)
     mesher          "box" (gmsh box fragmented with the needles and the clamp, tissue per element by its
-                    smoothed centroid label; graded around the needles) or "smooth" (CT only: the `segment` +
-                    `mesh` reconstruction, geometry.smooth, with the needles and the clamp inserted exactly;
-                    graded like the box from mesh_size to far_size by CGAL's interfaces, geometry.graded, which
-                    needs CGAL's headers; far_size = mesh_size: one size, surface nets, the label map coarsened
-                    to it; needle_size on the solids). With
-                    "smooth" the site, paths and crop come from the same segmentation (segmentation_label_volume)
+                    smoothed centroid label; graded around the needles) or "smooth" (the `segment` +
+                    `mesh` reconstruction, geometry.smooth, of the CT's segmentation or of the SSM's label
+                    volume, with the needles and the clamp inserted exactly; graded like the box from
+                    mesh_size to far_size by CGAL's interfaces, geometry.graded, which needs CGAL's headers;
+                    far_size = mesh_size: one size, surface nets, the label map coarsened to it; needle_size
+                    on the solids). With "smooth" the site, paths and crop come from the same segmentation
+                    (smooth_label_map)
     segmentation    folder written by `needletissue segment` (tissues.nii.gz, bones.nii.gz): the label map of
                     the smooth mesher instead of segmenting ct + labels again
     order           2 (tetra10, curved needle surfaces; the default) or 1 (linear tets: the paper's element
@@ -145,9 +146,7 @@ class PelvisConfig:
             raise InputError("si_joint", f"must be 'fixed' or 'bonded', got {self.si_joint!r}")
         if self.mesher not in ("box", "smooth"):
             raise InputError("mesher", f"must be 'box' or 'smooth', got {self.mesher!r}")
-        if self.mesher == "smooth" and self.source != "ct":
-            raise InputError("mesher", "'smooth' meshes the CT's segmentation: use source 'ct' (or mesher 'box')")
-        if self.segmentation is not None and (self.mesher != "smooth" or self.ct or self.labels):
+        if self.segmentation is not None and (self.mesher != "smooth" or self.ct or self.labels or self.source != "ct"):
             raise InputError("segmentation", "a `segment` folder is meshed by mesher 'smooth', instead of ct/labels")
         if self.interfaces not in ("bonded", "paper"):
             raise InputError("interfaces", f"must be 'bonded' or 'paper', got {self.interfaces!r}")
@@ -299,27 +298,37 @@ class PelvisResult:
         return to_jsonable(asdict(self))
 
 
+def smooth_label_map(config: PelvisConfig):
+    """(Segmentation, LabelVolume) the smooth mesher meshes: a `segment` folder, the SSM's label volume as a
+    segmentation, or the CT (default the example CT) segmented; the label volume (RAS, one hemipelvis) comes
+    back from the segmentation, so that site, paths and mesh are made from one label map."""
+    from needletissue.geometry import pelvis as gp
+    from needletissue.imaging.segment import Segmentation, SegmentationConfig, segment
+
+    if config.segmentation:
+        seg = Segmentation.load(config.segmentation)
+    elif config.source == "ssm":   # no CT: the SSM's label volume as a segmentation
+        seg = gp.label_volume_segmentation(gp.ssm_label_volume(side=config.side, spacing=config.ssm_spacing),
+                                           config.cortical_thickness)
+    else:
+        d = None if config.ct else gp.data_dir() / "pelvis_ct"
+        seg = segment(config.ct or d / "example_ct.nii.gz", config.labels or d / "example_seg_fast_force_split.nii.gz",
+                      SegmentationConfig(cortical_thickness=config.cortical_thickness))
+    return seg, gp.segmentation_label_volume(seg, side=config.side)
+
+
 def build(config: PelvisConfig):
     """Labels, needle site and the linear conforming mesh for `config` (geometry.pelvis.PelvisMesh)."""
     from needletissue.geometry import pelvis as gp
 
     seg = None
     far = 4 * config.mesh_size if config.far_size is None else config.far_size
-    if config.mesher == "smooth":   # one label map for the site, the paths and the mesh: the segmentation's
-        from needletissue.imaging.segment import Segmentation, SegmentationConfig, segment
-
+    if config.mesher == "smooth":
         if far > config.mesh_size:   # the CGAL helper first: a missing CGAL is named before any work
             from needletissue.geometry.graded import helper
 
             helper()
-
-        if config.segmentation:
-            seg = Segmentation.load(config.segmentation)
-        else:
-            d = None if config.ct else gp.data_dir() / "pelvis_ct"
-            seg = segment(config.ct or d / "example_ct.nii.gz", config.labels or d / "example_seg_fast_force_split.nii.gz",
-                          SegmentationConfig(cortical_thickness=config.cortical_thickness))
-        vol = gp.segmentation_label_volume(seg, side=config.side)
+        seg, vol = smooth_label_map(config)
     elif config.source == "ct":
         vol = gp.ct_label_volume(config.ct, config.labels, side=config.side)
     else:
