@@ -24,7 +24,7 @@ def ball(cgal):
     arr[(x - 14) ** 2 + (y - 24) ** 2 + (z - 24) ** 2 <= R * R] = 2
     arr[20:28, 20:28, 34:40] = CORRIDOR
     h = graded.size_field(arr, (1.0, 1.0, 1.0), CORRIDOR, 0.75, 2.0, 30.0)
-    return arr, h, graded.graded_interfaces(arr, (1.0, 1.0, 1.0), h)
+    return arr, h, graded.graded_interfaces(arr, (1.0, 1.0, 1.0), h, restore=False)
 
 
 def test_graded_interfaces_close_every_tissue_and_follow_the_ball(ball):
@@ -33,7 +33,8 @@ def test_graded_interfaces_close_every_tissue_and_follow_the_ball(ball):
     edges 2.9 / 2.0 / 1.6 / 1.1 mm), its interface lies within one voxel of the sphere, and the faces are
     oriented out of side a (the volumes add up to the block)."""
     arr, _, s = ball
-    coarse = graded.graded_interfaces(arr, (1.0, 1.0, 1.0), graded.size_field(arr, (1, 1, 1), CORRIDOR, 1.5, 6.0, 30.0))
+    coarse = graded.graded_interfaces(arr, (1.0, 1.0, 1.0), graded.size_field(arr, (1, 1, 1), CORRIDOR, 1.5, 6.0, 30.0),
+                                      restore=False)
     for lab in np.unique(s.boundary_labels):
         f = s.faces[(s.boundary_labels == lab).any(1)]
         e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
@@ -57,8 +58,33 @@ def test_graded_interfaces_grow_away_from_the_corridor_and_repeat(ball, cgal):
     edge = np.linalg.norm(t - np.roll(t, 1, axis=1), axis=2).mean(1)
     dist = np.linalg.norm(t.mean(1) - (37, 24, 24), axis=1)
     assert edge[dist > 30].mean() > 1.8 * edge[dist < 10].mean()
-    again = graded.graded_interfaces(arr, (1.0, 1.0, 1.0), h)
+    again = graded.graded_interfaces(arr, (1.0, 1.0, 1.0), h, restore=False)
     assert np.array_equal(again.points, s.points) and np.array_equal(again.faces, s.faces)
+
+
+def test_restored_interfaces_keep_each_labels_volume_and_the_fixed_faces(ball):
+    """With the volumes restored (the default), the coarse ball (-7 % raw) encloses its voxels' volume to
+    0.1 %, still within one voxel of the sphere, the corridor's faces and the cut planes do not move, and a
+    target volume given for a label is the one it gets."""
+    arr, _, _ = ball
+    h = graded.size_field(arr, (1, 1, 1), CORRIDOR, 1.5, 6.0, 30.0)
+    raw = graded.graded_interfaces(arr, (1.0, 1.0, 1.0), h, restore=False)
+    s = graded.graded_interfaces(arr, (1.0, 1.0, 1.0), h, fixed_labels=(CORRIDOR,))
+    assert np.array_equal(raw.faces, s.faces)
+    voxels = np.bincount(arr.ravel(), minlength=256).astype(float)
+    vol = label_volumes(s.points, s.faces, s.boundary_labels)
+    assert raw.info["volume_change_cgal"][2] < -0.03
+    assert abs(vol[2] / voxels[2] - 1) < 1e-3   # (the block keeps the box's rounded edges: its faces are fixed)
+    on_ball = np.unique(s.faces[(s.boundary_labels == 2).any(1)])
+    assert np.abs(np.linalg.norm(s.points[on_ball] - (14, 24, 24), axis=1) - R).max() < 1.0
+    corridor = np.unique(s.faces[(s.boundary_labels == CORRIDOR).any(1)])
+    plane = np.isclose(s.points, -0.5).any(1) | np.isclose(s.points, len(arr) - 0.5).any(1)
+    for fixed in (corridor, np.flatnonzero(plane)):
+        assert len(fixed) and np.array_equal(s.points[fixed], raw.points[fixed])
+    target = voxels * 1.0
+    target[2] *= 1.02
+    bigger = graded.graded_interfaces(arr, (1.0, 1.0, 1.0), h, volumes=target)
+    assert label_volumes(bigger.points, bigger.faces, bigger.boundary_labels)[2] == pytest.approx(target[2], rel=1e-3)
 
 
 def test_pieces_smaller_than_their_element_are_merged_and_the_rest_kept():

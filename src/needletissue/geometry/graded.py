@@ -194,13 +194,19 @@ def mesh_labels(arr: np.ndarray, spacing, cell_size: np.ndarray, facet_size: np.
 
 
 def graded_interfaces(arr: np.ndarray, spacing, cell_size: np.ndarray, facet_size: np.ndarray | None = None,
-                      facet_distance: float = FACET_DISTANCE, flat=None):
+                      facet_distance: float = FACET_DISTANCE, flat=None, volumes: np.ndarray | None = None,
+                      fixed_labels=(), restore: bool = True):
     """Every tissue interface of a label array as one conforming triangle set (smooth.InterfaceSurfaces),
     graded by the size fields: the faces between CGAL's tetrahedra of different labels and those on the
     domain's boundary (label 0 beyond). The array is padded by one empty voxel so that its labels close.
     flat: (lo, hi) voxel index ranges (x, y, z) of the crop whose cut planes are put exactly on their plane
-    (CGAL finds them to ~1e-4 mm; default the array's)."""
-    from needletissue.geometry.smooth import InterfaceSurfaces, label_volumes
+    (CGAL finds them to ~1e-4 mm; default the array's).
+    restore: the interfaces are then offset along their normals until each label encloses `volumes[label]`
+    (mm^3; default its voxels'; smooth.restore_volumes): triangles larger than the label map's folds cut
+    them off, and a thin, folded tissue loses volume (the CT's body wall: -4.5 %, and -1.1 % more where
+    pieces smaller than an element were merged). Vertices on the cut planes and on the faces of
+    `fixed_labels` (the needles' corridor, whose volume is left as CGAL makes it) stay."""
+    from needletissue.geometry.smooth import InterfaceSurfaces, label_volumes, restore_volumes
     from needletissue.geometry.tetmesh import face_pairs
 
     sp = np.asarray(spacing, float)
@@ -209,9 +215,11 @@ def graded_interfaces(arr: np.ndarray, spacing, cell_size: np.ndarray, facet_siz
                                               None if facet_size is None else pad(facet_size), facet_distance)
     points -= sp                                  # back to the unpadded grid
     lo, hi = (np.zeros(3), np.asarray(arr.shape[::-1], float)) if flat is None else np.asarray(flat, float)
+    on_plane = np.zeros(len(points), bool)
     for plane in ((lo - 0.5) * sp, (hi - 0.5) * sp):   # the crop's cut faces: flat to the bit, as supports need
         near = np.abs(points - plane) < 0.01 * sp
         points[near] = np.broadcast_to(plane, points.shape)[near]
+        on_plane |= near.any(1)
     inter, free, faces, two = face_pairs(cells, labels, pairs=True)
     nc = len(cells)
     partner = np.full(len(faces), -1)
@@ -228,9 +236,16 @@ def graded_interfaces(arr: np.ndarray, spacing, cell_size: np.ndarray, facet_siz
     flip = np.einsum("ij,ij->i", np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), t[:, 0] - c) < 0
     tri[flip] = tri[flip][:, [0, 2, 1]]
     bl = np.stack([side_a, side_b], 1)
-    vol0 = np.bincount(arr.ravel(), minlength=256) * float(np.prod(sp))
+    target = np.bincount(arr.ravel(), minlength=256) * float(np.prod(sp)) if volumes is None else np.asarray(volumes)
+    present = np.flatnonzero(target[1:] > 0) + 1
     vol = label_volumes(pts, tri, bl)
-    present = np.flatnonzero(vol0[1:] > 0) + 1
+    info["volume_change_cgal"] = {int(k): float(vol[k] / target[k] - 1) for k in present}
+    if restore:
+        fixed = on_plane[used]
+        fixed[tri[np.isin(bl, fixed_labels).any(1)].ravel()] = True
+        before, pts = pts, restore_volumes(pts, tri, bl, target, fixed, fixed_labels=fixed_labels)
+        info["max_restore_move_mm"] = float(np.linalg.norm(pts - before, axis=1).max())
+        vol = label_volumes(pts, tri, bl)
     info.update({"n_points": int(len(pts)), "n_triangles": int(len(tri)),
-                 "volume_change_final": {int(k): float(vol[k] / vol0[k] - 1) for k in present}})
+                 "volume_change_final": {int(k): float(vol[k] / target[k] - 1) for k in present}})
     return InterfaceSurfaces(points=pts, faces=tri, boundary_labels=bl, info=info)

@@ -174,14 +174,15 @@ def label_volumes(points, faces, boundary_labels, n_labels: int = 256) -> np.nda
     return (np.bincount(boundary_labels[:, 0], v, n_labels) - np.bincount(boundary_labels[:, 1], v, n_labels))
 
 
-def restore_volumes(points, faces, boundary_labels, target, fixed, iterations: int = 3):
+def restore_volumes(points, faces, boundary_labels, target, fixed, iterations: int = 3, fixed_labels=()):
     """Offset the interfaces along their normals so that each label encloses its `target` volume.
 
     Laplacian smoothing shrinks convex regions. Each label L gets a potential phi_L (phi of the
     background 0 = 0); the interface between a and b moves by phi_a - phi_b along its normal (out of a),
     which changes vol(L) by sum_M A_LM (phi_L - phi_M). That graph-Laplacian system is solved for the volume
     deficits, vertex moves are the area-weighted means over their faces, repeated `iterations` times
-    (linearisation). Vertices in `fixed` do not move. Returns the new points.
+    (linearisation). Vertices in `fixed` do not move; labels in `fixed_labels` keep phi = 0 like the
+    background (their faces are fixed: their volume is not theirs to restore). Returns the new points.
     """
     x = np.array(points, float, copy=True)
     a, b = boundary_labels[:, 0], boundary_labels[:, 1]
@@ -199,7 +200,7 @@ def restore_volumes(points, faces, boundary_labels, target, fixed, iterations: i
         np.add.at(K, (ib, ib), A)
         np.add.at(K, (ia, ib), -A)
         np.add.at(K, (ib, ia), -A)
-        free = labs != 0
+        free = ~np.isin(labs, (0, *fixed_labels))
         phi = np.zeros(len(labs))
         phi[free] = np.linalg.lstsq(K[np.ix_(free, free)], deficit[free], rcond=None)[0]
         s = phi[ia] - phi[ib]                                          # mm, along the unit normal
@@ -996,8 +997,9 @@ def smooth_tet_mesh(seg, cfg, solids: Solids | None = None):
         if solids is None:
             raise InputError("far_size", "a graded mesh grows from the solids (needles): none were given")
         h = graded.size_field(work, sp, CORRIDOR, cfg.size, cfg.far_size, cfg.refine_radius)
+        volumes = np.bincount(work.ravel(), minlength=256) * float(np.prod(sp))   # the label map's, kept
         work, n_dropped = graded.drop_small_components(work, sp, h, keep=(CORRIDOR,))
-        surf = graded.graded_interfaces(work, sp, h, flat=flat)
+        surf = graded.graded_interfaces(work, sp, h, flat=flat, volumes=volumes, fixed_labels=(CORRIDOR,))
         surf.info["voxels_of_small_pieces_merged"] = n_dropped
     else:
         surf = smooth_interfaces(work, sp, iterations=cfg.smoothing_iterations, scale=cfg.smoothing_scale, flat=flat)
