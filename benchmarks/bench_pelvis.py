@@ -48,7 +48,7 @@ def test_bench_mesh_smooth(benchmark, site_and_volume):
 def test_bench_solve_coarse(benchmark):
     from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
-    cfg = PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[100.0, 200.0, 300.0], figures=False)
+    cfg = PelvisConfig(mesher="box", mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[100.0, 200.0, 300.0], figures=False)
     res = benchmark.pedantic(run_pelvis_model, args=(cfg,), rounds=1, iterations=1)
     benchmark.extra_info["tetrahedra"] = res.mesh["tetrahedra"]
     benchmark.extra_info["dofs"] = res.mesh["dofs"]

@@ -75,7 +75,7 @@ def run(model: str, ratio, order: int, formulation: str | None) -> dict:
         from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
         from needletissue.models.pelvis.model import MATERIALS
 
-        cfg = PelvisConfig(order=order, figures=False, crosscheck_thickness=False, tissue_bulk_ratio=ratio,
+        cfg = PelvisConfig(mesher="box", order=order, figures=False, crosscheck_thickness=False, tissue_bulk_ratio=ratio,
                            **({"formulation": formulation} if formulation else {}))
         solved, solve = [], nfem.solve
         nfem.solve = lambda *a, **k: solved.append(solve(*a, **k)) or solved[-1]  # keep the FEResults

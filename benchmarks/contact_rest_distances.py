@@ -32,7 +32,7 @@ def main(argv=None):
     ap.add_argument("--needle-size", type=float)
     ap.add_argument("--far-size", type=float)
     a = ap.parse_args(argv)
-    cfg = PelvisConfig(interfaces="paper", mesh_size=a.mesh_size, needle_size=a.needle_size, far_size=a.far_size)
+    cfg = PelvisConfig(mesher="box", interfaces="paper", mesh_size=a.mesh_size, needle_size=a.needle_size, far_size=a.far_size)
     vol, pm = build(cfg)
     q = TaggedMesh(pm.points, pm.cells, pm.regions, pm.surfaces).to_quadratic()
     q.points = curve_needles(q.points, q.cells, q.regions, pm.needle_axes, pm.site.diameter / 2)

@@ -44,7 +44,7 @@ def capture(mesh_size: float, needle_size: float, folder: Path):
         raise _Captured
 
     linsolve.make, linsolve.TimedSolver.__call__ = spy, save
-    cfg = PelvisConfig(forces=[100.0], order=1, needle_size=needle_size, mesh_size=mesh_size, far_size=mesh_size,
+    cfg = PelvisConfig(mesher="box", forces=[100.0], order=1, needle_size=needle_size, mesh_size=mesh_size, far_size=mesh_size,
                        out=str(folder / "model"), figures=False, solver="pardiso", progress=False)
     try:
         run_pelvis_model(cfg)

@@ -67,7 +67,7 @@ def main():
     else:
         from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
-        run_pelvis_model(PelvisConfig(forces=[300.0], order=1, needle_size=a.mesh_size / 2.45, mesh_size=a.mesh_size,
+        run_pelvis_model(PelvisConfig(mesher="box", forces=[300.0], order=1, needle_size=a.mesh_size / 2.45, mesh_size=a.mesh_size,
                                       far_size=a.mesh_size, out=None, figures=False))
 
 

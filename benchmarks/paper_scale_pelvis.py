@@ -29,7 +29,7 @@ if __name__ == "__main__":
     ap.add_argument("--needle-size", type=float, default=1.0, help="needle element size, mm")
     ap.add_argument("--solver", default="auto", choices=SOLVERS, help="linear solver (fem.linsolve)")
     a = ap.parse_args()
-    cfg = PelvisConfig(forces=a.force or [300.0], order=1, needle_size=a.needle_size, mesh_size=a.mesh_size,
+    cfg = PelvisConfig(mesher="box", forces=a.force or [300.0], order=1, needle_size=a.needle_size, mesh_size=a.mesh_size,
                        far_size=a.mesh_size, out=a.out, figures=False,
                        solver=a.solver)
     t = time.perf_counter()

@@ -27,7 +27,7 @@ def main():
         pelvis_model.CONTACT_TOL = float(kw.pop("contact_tol"))
     if "substeps" in kw:  # fem.solve's default number of modified-Newton substeps (0: none)
         importlib.import_module("needletissue.fem.solve").SUBSTEPS = int(kw.pop("substeps"))
-    cfg = PelvisConfig(interfaces="paper", forces=[100.0, 200.0, 300.0], figures=False, crosscheck_thickness=False, **kw)
+    cfg = PelvisConfig(mesher="box", interfaces="paper", forces=[100.0, 200.0, 300.0], figures=False, crosscheck_thickness=False, **kw)
     newton = felupe.newtonraphson
     t0 = time.process_time()
 

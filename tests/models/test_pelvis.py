@@ -352,7 +352,7 @@ def test_bad_inputs_name_the_field():
     with pytest.raises(InputError, match="segmentation"):
         PelvisConfig(mesher="smooth", source="ssm", segmentation="seg")   # the SSM has its own labels
     with pytest.raises(InputError, match="segmentation"):
-        PelvisConfig(segmentation="seg")              # a segment folder is meshed by the smooth mesher
+        PelvisConfig(segmentation="seg", mesher="box")   # a segment folder is meshed by the smooth mesher
     with pytest.raises(InputError, match="contact_dhat"):
         PelvisConfig(contact_dhat=0.0)
     for kw, field in ((dict(order=3), "order"), (dict(order=True), "order"),
@@ -369,7 +369,7 @@ def test_coarse_solve_equilibrium_and_monotone(tmp_path):
 
     from needletissue.models.pelvis.model import MATERIALS as gp_materials
 
-    cfg = PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[50.0, 100.0],
+    cfg = PelvisConfig(mesher="box", mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[50.0, 100.0],
                        out=str(tmp_path), figures=False, crosscheck_thickness=False)
     res = run_pelvis_model(cfg)
     a, b = res.results
@@ -494,7 +494,7 @@ def test_linear_order_coarse_solve_equilibrium():
     the linear mesh itself (no midside nodes) and the supports carry the applied force."""
     from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
-    res = run_pelvis_model(PelvisConfig(order=1, mesh_size=6.0, needle_size=1.5, far_size=18.0, forces=[300.0],
+    res = run_pelvis_model(PelvisConfig(mesher="box", order=1, mesh_size=6.0, needle_size=1.5, far_size=18.0, forces=[300.0],
                                         figures=False, crosscheck_thickness=False))
     assert res.mesh["order"] == 1 and res.mesh["nodes"] == res.mesh["linear_nodes"]
     r = res.results[-1]
@@ -579,7 +579,7 @@ def test_needle_interfaces_in_contact_are_more_compliant(tmp_path):
     and the barrier keeps the interpenetration below dhat (results' "contact" field)."""
     from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
-    kw = dict(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[20.0], figures=False,
+    kw = dict(mesher="box", mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[20.0], figures=False,
               crosscheck_thickness=False)
     bonded = run_pelvis_model(PelvisConfig(**kw))
     res = run_pelvis_model(PelvisConfig(**kw, friction={"needle-muscle": 0.3, "bone-needle": 0.9},
@@ -641,8 +641,9 @@ def test_written_config_is_accepted_back(tmp_path, cli_config):
 
 
 def test_cli_segmentation_folder_selects_the_smooth_mesher(tmp_path, cli_config):
-    """`fe pelvis --segmentation DIR` runs the smooth mesher on that `segment` folder; a folder without
-    tissues.nii.gz is one error line naming --segmentation (exit 2)."""
+    """`fe pelvis --segmentation DIR` runs the smooth mesher on that `segment` folder; the smooth mesher is the
+    default, at 4.5 mm, the box's at 3 mm; a folder without tissues.nii.gz is one error line naming
+    --segmentation (exit 2)."""
     from typer.testing import CliRunner
 
     from needletissue.cli import app
@@ -654,8 +655,11 @@ def test_cli_segmentation_folder_selects_the_smooth_mesher(tmp_path, cli_config)
     assert seen[-1].mesher == "smooth" and seen[-1].segmentation == str(tmp_path) and seen[-1].mesh_size == 6.0
     res = CliRunner().invoke(app, ["fe", "pelvis", "--mesher", "smooth"])
     assert isinstance(res.exception, Stop) and seen[-1].mesher == "smooth" and seen[-1].segmentation is None
+    assert seen[-1].mesh_size == 4.5   # the smooth mesher's default size
     res = CliRunner().invoke(app, ["fe", "pelvis"])
-    assert isinstance(res.exception, Stop) and seen[-1].mesher == "box"
+    assert isinstance(res.exception, Stop) and seen[-1].mesher == "smooth" and seen[-1].mesh_size == 4.5
+    res = CliRunner().invoke(app, ["fe", "pelvis", "--mesher", "box"])
+    assert isinstance(res.exception, Stop) and seen[-1].mesher == "box" and seen[-1].mesh_size == 3.0
     code = (f"import sys; sys.argv = ['needletissue', 'fe', 'pelvis', '--segmentation', {str(tmp_path / 'none')!r}];"
             "from needletissue.cli import main; main()")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ))

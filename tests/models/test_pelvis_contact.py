@@ -96,7 +96,7 @@ def test_paper_interfaces_converge_in_equilibrium_and_report_each_interface(tmp_
 
     from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
 
-    res = run_pelvis_model(PelvisConfig(mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[20.0],
+    res = run_pelvis_model(PelvisConfig(mesher="box", mesh_size=6.0, needle_size=3.0, far_size=18.0, forces=[20.0],
                                         interfaces="paper", figures=False, crosscheck_thickness=False,
                                         out=str(tmp_path)))
     contact = json.loads((tmp_path / "pelvis_results.json").read_text(encoding="utf-8"))["contact"]

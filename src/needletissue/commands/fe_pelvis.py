@@ -25,17 +25,18 @@ def register(app, groups) -> None:
                                             help="Force direction x,y,z (patient RAS; made transverse to the needles)."),
         site: str = typer.Option("supra_acetabular", "--site", help="supra_acetabular or iliac_crest."),
         side: str = typer.Option("right", "--side", help="Hemipelvis with the needles: right or left."),
-        mesh_size: float = typer.Option(3.0, "--mesh-size", help="Soft-tissue element size at the needles, mm."),
+        mesh_size: float = typer.Option(None, "--mesh-size", help="Soft-tissue element size at the needles, mm "
+                                         "(default 4.5 with --mesher smooth, 3 with box)."),
         needle_size: float = typer.Option(None, "--needle-size",
                                           help="Needle element size, mm (default 2/3 of --mesh-size)."),
         far_size: float = typer.Option(None, "--far-size",
                                        help="Element size 35 mm and more from the needles, mm (default 4x --mesh-size); "
                                             "with --mesher smooth, = --mesh-size meshes at one size."),
-        mesher: str = typer.Option(None, "--mesher", help="box (the default: gmsh box with exact needles and clamp, "
-                                   "tissue by element centroid, graded) or smooth (the `segment` + `mesh` "
-                                   "reconstruction of the CT's or the SSM's label map with the needles and clamp inserted exactly, graded to --far-size "
-                                   "by CGAL's smooth interfaces (needs `apt-get install libcgal-dev`; --far-size = "
-                                   "--mesh-size: one size, no CGAL); the default with --segmentation)."),
+        mesher: str = typer.Option("smooth", "--mesher", help="smooth (the `segment` + `mesh` reconstruction of the "
+                                   "CT's or the SSM's label map with the needles and clamp inserted exactly, graded "
+                                   "to --far-size by CGAL's smooth interfaces; needs `apt-get install libcgal-dev`; "
+                                   "--far-size = --mesh-size: one size, no CGAL) or box (gmsh box with exact needles "
+                                   "and clamp, tissue by element centroid, graded)."),
         order: int = typer.Option(2, "--order", help="Element order: 2 (tetra10, curved needles) or 1 (linear "
                                                      "tets, the paper's; needs fine needles, see docs)."),
         needle_diameter: float = typer.Option(5.0, "--needle-diameter", help="Needle diameter, mm."),
@@ -103,8 +104,6 @@ def register(app, groups) -> None:
         if segmentation is not None:
             if not (segmentation / "tissues.nii.gz").is_file():
                 raise InputError("--segmentation", f"{segmentation}: no tissues.nii.gz (run `needletissue segment` first)")
-        if kw.get("mesher") is None:
-            kw["mesher"] = "smooth" if kw.get("segmentation") else "box"
         if kw.get("source", "ct") == "ct" and (kw.get("ct") is None) != (kw.get("labels") is None):
             raise InputError("--ct/--labels", "give both --ct and --labels (or neither for the example CT)")
         if out is not None:  # a file or an unwritable place: one error line now, not a traceback after the solve

@@ -98,7 +98,9 @@ class PelvisStage(_Strict):
     ct: str = Field(description="CT file (NIfTI or DICOM folder); empty = the example CT.")
     labels: str = Field(description="Label map on the CT grid; empty = the example label map.")
     forces_N: PositiveForces = Field(description=f"Reduction forces, N ({FORCE_RANGE_HELP}).")
-    mesh_size_mm: float = Field(gt=0, le=50, description="Tissue element size, mm.")
+    mesh_size_mm: float = Field(gt=0, le=50, description="Tissue element size at the needles, mm.")
+    mesher: Literal["smooth", "box"] = Field(description="'smooth' (the reconstruction `segment` + `mesh` make, "
+                                             "graded; fe pelvis's default) or 'box' (tissue by element centroid).")
 
 
 class ReportSettings(_Strict):

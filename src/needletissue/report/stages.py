@@ -308,14 +308,15 @@ def _frame_beside_fe(c, res, comps) -> list[dict]:
     return out
 
 
-def mesh_converged_limits(source: str, ct, labels, mesh_size_mm: float) -> dict | None:
+def mesh_converged_limits(source: str, ct, labels, mesh_size_mm: float, mesher: str = "box") -> dict | None:
     """{force N: Richardson limit of the max needle deformation, mm} from the stored mesh-convergence study of
-    the anatomical model (package data pelvis_convergence.json, benchmarks/pelvis_mesh_convergence.py), when
-    this run is one of its levels: `fe pelvis` defaults (bundled CT and labels) at one of its sizes; else None."""
+    the anatomical model (package data pelvis_convergence.json, benchmarks/pelvis_mesh_convergence.py, the box
+    mesher), when this run is one of its levels: `fe pelvis --mesher box` on the bundled CT and labels at one
+    of its sizes; else None."""
     import json
     from importlib.resources import files
 
-    if source != "ct" or ct or labels:
+    if source != "ct" or ct or labels or mesher != "box":
         return None
     study = json.loads(files("needletissue").joinpath("data/pelvis_convergence.json").read_text())
     if not any(abs(mesh_size_mm - h) < 1e-9 for h in study["sizes_mm"]):
@@ -409,7 +410,7 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
     # figures=False: the model's VTK section render runs in this process (it crashed once on a 4 mm
     # mesh); we render the VTU it writes in a child process instead.
     res = run_pelvis_model(PelvisConfig(source=c.source, ct=ct, labels=labels, forces=list(c.forces_N),
-                                        mesh_size=c.mesh_size_mm, out=str(d), figures=False))
+                                        mesh_size=c.mesh_size_mm, mesher=c.mesher, out=str(d), figures=False))
     data = res.to_dict()
     files = sorted(d.glob("*.vtu")) + sorted(d.glob("*.vtm")) + sorted(d.glob("*.pvd"))
     notes = [f"mesh: {res.mesh.get('tetrahedra', 0):,} tetrahedra, wall time {res.wall_time_s:.1f} s", *res.notes]
@@ -446,7 +447,7 @@ def pelvis_stage(cfg: ReproduceConfig, ctx: StageContext) -> StageResult:
         comps.append(Comparison(f"Soft tissue along {t['needle']}", t["total_mm"], "mm",
                                 "soft_tissue_thickness_mean_mm", "paper: mean of 10 patients (+- 5.43 mm); "
                                 "agrees = within one patient SD", tolerance_percent=100 * sd))
-    data["frame"] = _frame_beside_pelvis(data, comps, mesh_converged_limits(c.source, ct, labels, c.mesh_size_mm))
+    data["frame"] = _frame_beside_pelvis(data, comps, mesh_converged_limits(c.source, ct, labels, c.mesh_size_mm, c.mesher))
     base, top = data["site"]["needle_axes_mm"][0]
     forces = [r.force_N for r in res.results]
     views = _view(d / "pelvis_3d.html", "Anatomical model, deformed at each force (adipose and body wall "

@@ -61,6 +61,12 @@ MATERIALS = {
 }
 
 
+# Default soft-tissue size at the needles per mesher (mm). Smooth (graded to 4x): 4.5 mm is within 0.6 % of
+# its 3.6 and 2.88 mm levels and 0.3-0.9 % of the box mesher's Richardson limit, and its contact solve fits
+# 2 cores and ~10 GB; the box needs 3 mm (the paper's size) and is still 5.8 % stiff (docs/pelvis_model.md).
+DEFAULT_MESH_SIZE = {"smooth": 4.5, "box": 3.0}
+
+
 @dataclass
 class PelvisConfig:
     """Inputs of the anatomical model. Lengths mm, forces N.
@@ -74,16 +80,17 @@ class PelvisConfig:
     forces          reduction forces on the clamp, N
     force_direction (3,) direction of the reduction force (patient RAS; default inferior = traction);
                     with project_force=True its component along the needle axis is removed
-    mesh_size       soft-tissue element size next to the needles, mm (paper: 3)
+    mesh_size       soft-tissue element size next to the needles, mm (None: DEFAULT_MESH_SIZE of the mesher,
+                    4.5 smooth, 3 box (the paper's); docs/pelvis_model.md "Default mesh")
     needle_size     needle element size, mm (default 2*mesh_size/3; quadratic tets)
     far_size        element size far (refine_radius) from the needles, mm (default 4*mesh_size)
-    mesher          "box" (gmsh box fragmented with the needles and the clamp, tissue per element by its
-                    smoothed centroid label; graded around the needles) or "smooth" (the `segment` +
+    mesher          "smooth" (the default) or "box" (gmsh box fragmented with the needles and the clamp, tissue
+                    per element by its smoothed centroid label; graded around the needles). "smooth": the `segment` +
                     `mesh` reconstruction, geometry.smooth, of the CT's segmentation or of the SSM's label
                     volume, with the needles and the clamp inserted exactly; graded like the box from
                     mesh_size to far_size by CGAL's interfaces, geometry.graded, which needs CGAL's headers;
                     far_size = mesh_size: one size, surface nets, the label map coarsened to it; needle_size
-                    on the solids). With "smooth" the site, paths and crop come from the same segmentation
+                    on the solids. With "smooth" the site, paths and crop come from the same segmentation
                     (smooth_label_map)
     segmentation    folder written by `needletissue segment` (tissues.nii.gz, bones.nii.gz): the label map of
                     the smooth mesher instead of segmenting ct + labels again
@@ -117,13 +124,13 @@ class PelvisConfig:
     forces: list = field(default_factory=lambda: [100.0, 200.0, 300.0])
     force_direction: list = field(default_factory=lambda: [0.0, 0.0, -1.0])
     project_force: bool = True
-    mesh_size: float = 3.0
+    mesh_size: float | None = None   # None: DEFAULT_MESH_SIZE[mesher]
     needle_size: float | None = None
     far_size: float | None = None
     refine_radius: float = 35.0
     cortical_thickness: float = 1.5
     ssm_spacing: float = 2.0
-    mesher: str = "box"
+    mesher: str = "smooth"
     order: int = 2
     formulation: str = "mixed"
     tissue_bulk_ratio: float | None = None  # K/mu0 of the tissue; None: the materials' K
@@ -164,6 +171,8 @@ class PelvisConfig:
         self.forces = sorted(check_force("force", f) for f in self.forces)
         if len(set(self.forces)) != len(self.forces):
             raise InputError("force", f"forces must be distinct, got {self.forces}")
+        if self.mesh_size is None:
+            self.mesh_size = DEFAULT_MESH_SIZE[self.mesher]
         check_number("mesh_size", self.mesh_size, ge=0.5, le=20)
         d = np.asarray(self.force_direction, float)
         if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
