@@ -61,9 +61,9 @@ MATERIALS = {
 }
 
 
-# Default soft-tissue size at the needles per mesher (mm). Smooth (graded to 4x): 4.5 mm is within 0.6 % of
-# its 3.6 and 2.88 mm levels and 0.3-0.9 % of the box mesher's Richardson limit, and its contact solve fits
-# 2 cores and ~10 GB; the box needs 3 mm (the paper's size) and is still 5.8 % stiff (docs/pelvis_model.md).
+# Default soft-tissue size at the needles per mesher (mm). Smooth (graded to 4x): 4.5 mm is 1.6-2.0 % softer
+# than its 3.6 and 2.88 mm levels (which agree to 0.4 %), and its contact solve fits 2 cores and ~10 GB (3.6 mm's
+# does not); the box is 3 mm (the paper's size), 5.8 % stiff against its limit (docs/pelvis_model.md).
 DEFAULT_MESH_SIZE = {"smooth": 4.5, "box": 3.0}
 
 
