@@ -130,8 +130,9 @@ def test_bad_graded_settings_name_the_field():
 
 
 def test_fe_pelvis_smooth_without_cgal_says_what_to_install(run_cli, monkeypatch):
-    """`fe pelvis --mesher smooth` (graded by default) where no compiler is found: exit 1 before any meshing,
-    naming the package and the uniform and box alternatives."""
+    """`fe pelvis` (its default mesher, graded) where no compiler is found: exit 1 before any meshing, naming the
+    package and the uniform and box alternatives."""
     monkeypatch.setenv("CXX", "no-such-compiler-xyz")
-    code, out, err = run_cli("fe", "pelvis", "--mesher", "smooth", "--force", "100")
-    assert code == 1 and "libcgal-dev" in err and "--far-size" in err and "--mesher box" in err
+    for args in (["--mesher", "smooth"], ["--ssm"], []):
+        code, out, err = run_cli("fe", "pelvis", *args, "--force", "100")
+        assert code == 1 and "libcgal-dev" in err and "--far-size" in err and "--mesher box" in err, (args, err)
