@@ -2,7 +2,7 @@
 
     PYTHONPATH=src python benchmarks/contact_rest_distances.py [--mesh-size 6 --needle-size 3 --far-size 18]
 
-Builds the `fe pelvis --interfaces paper` mesh (defaults: the CLI's), splits the interfaces as the model
+Builds the `fe pelvis --mesher box --interfaces paper` mesh (sizes: the box mesher's CLI defaults), splits the interfaces as the model
 does, builds each interface's collision surface with the virtual gap (0.9 dhat, dhat 0.1 mm) and prints per
 interface: split node pairs, collision pairs within dhat, how many are closer than 0.03 mm and the smallest
 distance (mm). The sides start coincident, so every pair should start near the gap: a much closer pair

@@ -4,7 +4,7 @@ The paper meshed its (whole) pelvis with linear tets, 1 mm on the needles and 3 
 1,329,469 elements. Our hemipelvis crop at 1 mm / 3 mm has only 747 k tets, so the tissue size is
 reduced to 2.45 mm (uniform, no far-field grading) to reach the paper's element count; see
 docs/pelvis_model.md ("Paper-scale run"). Same as
-`needletissue fe pelvis --order 1 --needle-size 1 --mesh-size 2.45 --far-size 2.45 --force 300`
+`needletissue fe pelvis --mesher box --order 1 --needle-size 1 --mesh-size 2.45 --far-size 2.45 --force 300`
 without the 3D render. Needs ../shared/data. Run with `nice`: measured 26.2 min wall on the busy shared
 2-core machine (1527 s CPU), 8.2 GiB peak RSS, 1,345,969 tets, 752,010 dofs (docs/pelvis_model.md).
 

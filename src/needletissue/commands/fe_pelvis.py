@@ -74,7 +74,10 @@ def register(app, groups) -> None:
             from needletissue.commands import from_command_line
             from needletissue.runinfo import dataclass_from, read_toml
 
-            kw = asdict(dataclass_from(PelvisConfig, read_toml(config_file), str(config_file)))
+            written = read_toml(config_file)
+            kw = asdict(dataclass_from(PelvisConfig, written, str(config_file)))
+            if "mesher" not in written:   # written before the smooth mesher existed: it ran the box
+                kw["mesher"] = "box"
             kw.pop("out"), kw.pop("progress")  # where to write and how to show it: this run's options
             given = set(from_command_line(ctx))
         if ssm and (ct is not None or labels is not None):

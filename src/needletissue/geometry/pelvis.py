@@ -814,8 +814,8 @@ def _largest_face_component(tets, names):
 
 
 def _surfaces(pts, tets, names, vol, frame, c_bottom, w_clamp, si_gap):
-    """Boundary sets: femur_fixed (the femur's faces on the crop's bottom plane; a femur without any, the
-    SSM's femoral-head proxy: all its faces), sacrum_fixed (superior
+    """Boundary sets: femur_fixed (CT: femur faces on the crop's bottom plane; SSM: the femoral-head
+    proxy's faces), sacrum_fixed (superior
     sacral surface: sacrum boundary faces within 6 mm of the sacrum's top), sacroiliac_joint (hip-bone
     faces shared with the sacrum or within si_gap of it), midline (all boundary faces on the medial crop
     plane), gripper (the clamp bar's two side faces at +-width/2, where the robot's jaws hold it and the
@@ -840,9 +840,10 @@ def _surfaces(pts, tets, names, vol, frame, c_bottom, w_clamp, si_gap):
     other[order[pair]] = fo[order[pair + 1]]
     other[order[pair + 1]] = fo[order[pair]]
     out = {}
-    out["femur_fixed"] = bnd & (fo == "femur") & on(2, lo[2])   # the femur's cut
-    if not out["femur_fixed"].any():   # no cut: the SSM's femoral-head proxy, whose whole surface is the fixed joint
+    if vol.source.startswith("ssm"):  # femoral-head proxy: its whole surface is the fixed hip joint
         out["femur_fixed"] = (fo == "femur") & (bnd | np.isin(other, ("hip_cortical", "hip_cancellous")))
+    else:
+        out["femur_fixed"] = bnd & (fo == "femur") & on(2, lo[2])
     sac_top = fc[fo == "sacrum", 2].max()
     # outer faces of the sacrum (free, or against soft tissue as in the SSM's offset layers)
     sac_outer = (fo == "sacrum") & (bnd | ((other != "sacrum") & (other != 0)))

@@ -31,7 +31,7 @@ CONTACT_QUOTED = (
     {"model": "FE anatomical model, demo-like coarse mesh (2 needles): the paper's interfaces, needle-muscle 0.3, "
               "muscle-bone 0.3 (muscle origins and insertions bonded beyond 35 mm of the pins), bone-needle 0.9",
      "forces_N": [100.0, 200.0, 300.0], "bonded_mm": [2.011, 4.018, 6.016], "contact_mm": [2.841, 5.470, 7.811],
-     "command": "needletissue fe pelvis --mesh-size 6 --needle-size 3 --far-size 18 --interfaces paper "
+     "command": "needletissue fe pelvis --mesher box --mesh-size 6 --needle-size 3 --far-size 18 --interfaces paper "
                 "--force 100 --force 200 --force 300 --out DIR",
      "source": "docs/contact.md, 'Anatomical model with contact'"},
 )

@@ -153,7 +153,10 @@ class PelvisConfig:
             raise InputError("si_joint", f"must be 'fixed' or 'bonded', got {self.si_joint!r}")
         if self.mesher not in ("box", "smooth"):
             raise InputError("mesher", f"must be 'box' or 'smooth', got {self.mesher!r}")
-        if self.segmentation is not None and (self.mesher != "smooth" or self.ct or self.labels or self.source != "ct"):
+        if self.segmentation is not None and self.source != "ct":
+            raise InputError("segmentation", "a `segment` folder is a CT's segmentation: it cannot be meshed with "
+                                             "the SSM source (--ssm); give one of them")
+        if self.segmentation is not None and (self.mesher != "smooth" or self.ct or self.labels):
             raise InputError("segmentation", "a `segment` folder is meshed by mesher 'smooth', instead of ct/labels")
         if self.interfaces not in ("bonded", "paper"):
             raise InputError("interfaces", f"must be 'bonded' or 'paper', got {self.interfaces!r}")
@@ -310,15 +313,16 @@ class PelvisResult:
 def smooth_label_map(config: PelvisConfig):
     """(Segmentation, LabelVolume) the smooth mesher meshes: a `segment` folder, the SSM's label volume as a
     segmentation, or the CT (default the example CT) segmented; the label volume (RAS, one hemipelvis) comes
-    back from the segmentation, so that site, paths and mesh are made from one label map."""
+    back from the segmentation (the SSM's is already one hemipelvis, the same labels: it is kept as it is), so
+    that site, paths and mesh are made from one label map."""
     from needletissue.geometry import pelvis as gp
     from needletissue.imaging.segment import Segmentation, SegmentationConfig, segment
 
     if config.segmentation:
         seg = Segmentation.load(config.segmentation)
     elif config.source == "ssm":   # no CT: the SSM's label volume as a segmentation
-        seg = gp.label_volume_segmentation(gp.ssm_label_volume(side=config.side, spacing=config.ssm_spacing),
-                                           config.cortical_thickness)
+        vol = gp.ssm_label_volume(side=config.side, spacing=config.ssm_spacing)
+        return gp.label_volume_segmentation(vol, config.cortical_thickness), vol
     else:
         d = None if config.ct else gp.data_dir() / "pelvis_ct"
         seg = segment(config.ct or d / "example_ct.nii.gz", config.labels or d / "example_seg_fast_force_split.nii.gz",

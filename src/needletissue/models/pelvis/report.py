@@ -17,7 +17,8 @@ def render_scene(data: dict):
 
     base, top = (np.asarray(p, float) for p in data["site"]["needle_axes_mm"][0])
     f = data["results"][-1]["force_N"]
-    source = str(data["site"].get("source") or "").split(":")[0].upper()  # "ct:<files>" -> CT
+    source = str(data["site"].get("source") or "").removeprefix("segmentation:")  # the smooth route's CT
+    source = ("ssm" if source.startswith("ssm") else "ct" if source else "").upper()  # "ct:<files>" -> CT
     return RenderScene(f"Anatomical model{f' ({source})' if source else ''}, 2 needles and a clamp, {f:g} N",
                        tuple(data["force_vector_unit"]), tuple(top - base), focus_steel=True,
                        cut=True)
