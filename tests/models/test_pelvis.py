@@ -351,6 +351,8 @@ def test_bad_inputs_name_the_field():
         PelvisConfig(mesher="gmsh")
     with pytest.raises(InputError, match="segmentation"):
         PelvisConfig(mesher="smooth", source="ssm", segmentation="seg")   # the SSM has its own labels
+    with pytest.raises(InputError, match="far_size.*default mesh_size is 4.5"):
+        PelvisConfig(far_size=4.0)                    # below the default size the user did not type
     with pytest.raises(InputError, match="segmentation"):
         PelvisConfig(segmentation="seg", mesher="box")   # a segment folder is meshed by the smooth mesher
     with pytest.raises(InputError, match="contact_dhat"):
@@ -640,6 +642,12 @@ def test_written_config_is_accepted_back(tmp_path, cli_config):
     got = seen[-1]
     assert got.mesh_size == 5.0 and got.needle_size == 3.0 and got.side == "left" and got.out is None
     assert got.friction == {"needle-muscle": 0.3, "bone-needle": 0.9}
+    res = CliRunner().invoke(app, ["fe", "pelvis", "--config", str(tmp_path / "config.toml"), "--mesher", "box"])
+    assert isinstance(res.exception, Stop) and seen[-1].mesher == "box" and seen[-1].mesh_size == 6.0   # the file's
+    default = tmp_path / "default.toml"   # a default run's file (4.5 mm, the smooth mesher's size) run with the box
+    default.write_text((tmp_path / "config.toml").read_text().replace("mesh_size = 6.0", "mesh_size = 4.5"))
+    res = CliRunner().invoke(app, ["fe", "pelvis", "--config", str(default), "--mesher", "box"])
+    assert isinstance(res.exception, Stop) and seen[-1].mesher == "box" and seen[-1].mesh_size == 3.0
     # a config written before the smooth mesher existed has no `mesher`: it ran, and runs again, the box
     old = tmp_path / "old.toml"
     old.write_text("\n".join(ln for ln in (tmp_path / "config.toml").read_text().splitlines()

@@ -68,6 +68,7 @@ def register(app, groups) -> None:
 
         from needletissue.errors import InputError
         from needletissue.models.pelvis import PelvisConfig, run_pelvis_model
+        from needletissue.models.pelvis.model import DEFAULT_MESH_SIZE
 
         kw, given = {}, set(ctx.params)
         if config_file is not None:
@@ -95,6 +96,9 @@ def register(app, groups) -> None:
                "si_joint": ("si_joint", si_joint), "interfaces": ("interfaces", interfaces),
                "contact_dhat": ("contact_dhat", contact_dhat), "contact_eps_v": ("contact_eps_v", contact_eps_v),
                "sliding_radius": ("sliding_radius", sliding_radius)}
+        if (config_file is not None and "mesher" in given and "mesh_size" not in given and mesher != kw["mesher"]
+                and kw["mesh_size"] == DEFAULT_MESH_SIZE.get(kw["mesher"])):
+            kw["mesh_size"] = None   # the file's size is its mesher's default: take the new mesher's
         kw.update(v for k, v in cli.items() if k in given)
         if ssm or ct is not None:  # a source given on the command line replaces the file's
             kw["source"] = "ssm" if ssm else "ct"

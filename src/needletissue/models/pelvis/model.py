@@ -174,7 +174,8 @@ class PelvisConfig:
         self.forces = sorted(check_force("force", f) for f in self.forces)
         if len(set(self.forces)) != len(self.forces):
             raise InputError("force", f"forces must be distinct, got {self.forces}")
-        if self.mesh_size is None:
+        defaulted = self.mesh_size is None
+        if defaulted:
             self.mesh_size = DEFAULT_MESH_SIZE[self.mesher]
         check_number("mesh_size", self.mesh_size, ge=0.5, le=20)
         d = np.asarray(self.force_direction, float)
@@ -185,7 +186,13 @@ class PelvisConfig:
         if self.needle_size is not None:
             check_number("needle_size", self.needle_size, ge=0.2, le=10)
         if self.far_size is not None:
-            check_number("far_size", self.far_size, ge=self.mesh_size, le=60)
+            try:
+                check_number("far_size", self.far_size, ge=self.mesh_size, le=60)
+            except InputError as exc:
+                if not defaulted:
+                    raise
+                raise InputError("far_size", f"{str(exc).split(': ', 1)[1]} (the {self.mesher} mesher's default "
+                                             f"mesh_size is {self.mesh_size} mm; give a smaller mesh_size)") from None
         if self.formulation not in ("displacement", "mixed"):
             raise InputError("formulation", f"must be 'displacement' or 'mixed', got {self.formulation!r}")
         tissue_bulk(MATERIALS, self.tissue_bulk_ratio)  # checks the ratio
