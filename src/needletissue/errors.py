@@ -14,7 +14,7 @@ class InputError(NeedleTissueError, ValueError):
     """Bad input: names the field and what is allowed."""
 
     def __init__(self, field: str, message: str):
-        self.field = field
+        self.field, self.message = field, message
         super().__init__(f"{field}: {message}")
 
 

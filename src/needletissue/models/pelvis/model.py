@@ -191,7 +191,7 @@ class PelvisConfig:
             except InputError as exc:
                 if not defaulted:
                     raise
-                raise InputError("far_size", f"{str(exc).split(': ', 1)[1]} (the {self.mesher} mesher's default "
+                raise InputError("far_size", f"{exc.message} (the {self.mesher} mesher's default "
                                              f"mesh_size is {self.mesh_size} mm; give a smaller mesh_size)") from None
         if self.formulation not in ("displacement", "mixed"):
             raise InputError("formulation", f"must be 'displacement' or 'mixed', got {self.formulation!r}")
@@ -208,7 +208,7 @@ def check_interface_name(name: str) -> None:
     try:
         ga, gb = parse_interface_name(name)
     except InputError as exc:
-        raise InputError("friction", str(exc).split(": ", 1)[1]) from None
+        raise InputError("friction", exc.message) from None
     for g in (ga, gb):
         if not group_regions(regions, g, groups):
             raise InputError("friction", f"interface {name!r}: no region or material {g!r}; allowed: "
