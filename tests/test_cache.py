@@ -10,7 +10,7 @@ from needletissue.cache import MESH_CACHE_ENV, cache_key, mesh_cache_dir, read_e
 
 
 def test_an_entry_reads_back_and_every_damage_is_a_miss(tmp_path):
-    write_entry(tmp_path, "k", ".bin", b"\x00mesh bytes", {"nodes": 3})
+    assert write_entry(tmp_path, "k", ".bin", b"\x00mesh bytes", {"nodes": 3}) is True
     data, facts = read_entry(tmp_path, "k", ".bin")
     assert data == b"\x00mesh bytes" and facts["nodes"] == 3
     assert not list(tmp_path.glob(".*"))  # no temporary file left
@@ -25,7 +25,7 @@ def test_an_entry_reads_back_and_every_damage_is_a_miss(tmp_path):
 def test_a_cache_that_cannot_be_written_does_not_fail(tmp_path):
     blocker = tmp_path / "a_file"
     blocker.write_text("")
-    write_entry(blocker / "cache", "k", ".bin", b"x", {})               # a file where the folder should be
+    assert write_entry(blocker / "cache", "k", ".bin", b"x", {}) is False   # a file where the folder should be
     assert read_entry(blocker / "cache", "k", ".bin") is None
 
 

@@ -66,11 +66,12 @@ def read_entry(folder: Path, key: str, suffix: str) -> tuple[bytes, dict] | None
     return data, facts
 
 
-def write_entry(folder: Path, key: str, suffix: str, data: bytes, facts: dict) -> None:
+def write_entry(folder: Path, key: str, suffix: str, data: bytes, facts: dict) -> bool:
     """Store an entry, each file by runinfo.write_atomic (never half a file, mode from the umask), the data
-    first; a folder that cannot be written (read-only home, full disk) is ignored."""
+    first; a folder that cannot be written (read-only home, full disk) is ignored. Returns whether it stored."""
     try:
         write_atomic(folder / f"{key}{suffix}", data)
         write_atomic(folder / f"{key}.json", json.dumps({**facts, "sha256": sha256(data)}))
     except (OSError, InputError):
-        pass
+        return False
+    return True

@@ -96,12 +96,12 @@ def helper() -> Path:
             shutil.rmtree(built.parent, ignore_errors=True)
             raise MissingCGAL(f"compiling {SOURCE.name} against CGAL {version} failed:\n{r.stderr[-2000:]}\n"
                               f"{INSTALL_HINT}")
-        write_entry(folder, name, "", built.read_bytes(), {"cgal": version, "compiler": compiler})
-        try:   # an executable, readable as the umask allows
-            os.chmod(exe, 0o777 & ~current_umask())
-            ok = read_entry(folder, name, "") is not None
-        except OSError:   # a cache that cannot be written: this process's copy
-            ok = False
+        ok = write_entry(folder, name, "", built.read_bytes(), {"cgal": version, "compiler": compiler})
+        if ok:
+            try:   # an executable, readable as the umask allows
+                os.chmod(exe, 0o777 & ~current_umask())
+            except OSError:   # a cache that cannot be written: this process's copy
+                ok = False
         if ok:
             shutil.rmtree(built.parent, ignore_errors=True)
         else:
