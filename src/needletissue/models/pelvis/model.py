@@ -189,7 +189,7 @@ class PelvisConfig:
             try:
                 check_number("far_size", self.far_size, ge=self.mesh_size, le=60)
             except InputError as exc:
-                if not defaulted:
+                if not defaulted or self.far_size > self.mesh_size:   # the hint is for a far_size below it
                     raise
                 raise InputError("far_size", f"{exc.message} (the {self.mesher} mesher's default "
                                              f"mesh_size is {self.mesh_size} mm; give a smaller mesh_size)") from None
