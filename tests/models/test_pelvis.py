@@ -353,6 +353,11 @@ def test_bad_inputs_name_the_field():
         PelvisConfig(mesher="smooth", source="ssm", segmentation="seg")   # the SSM has its own labels
     with pytest.raises(InputError, match="far_size.*default mesh_size is 4.5"):
         PelvisConfig(far_size=4.0)                    # below the default size the user did not type
+    for bad, says in (("abc", "expected a number"), (float("nan"), "finite"), (True, "expected a number"),
+                      (1e9, "<= 60")):   # not below the default: no hint about it
+        with pytest.raises(InputError, match=f"far_size: .*{says}") as exc:
+            PelvisConfig(far_size=bad)
+        assert "default mesh_size" not in str(exc.value)
     with pytest.raises(InputError, match="segmentation"):
         PelvisConfig(segmentation="seg", mesher="box")   # a segment folder is meshed by the smooth mesher
     with pytest.raises(InputError, match="contact_dhat"):

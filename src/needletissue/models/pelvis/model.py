@@ -186,6 +186,7 @@ class PelvisConfig:
         if self.needle_size is not None:
             check_number("needle_size", self.needle_size, ge=0.2, le=10)
         if self.far_size is not None:
+            check_number("far_size", self.far_size)   # a number first: the hint compares it
             try:
                 check_number("far_size", self.far_size, ge=self.mesh_size, le=60)
             except InputError as exc:
