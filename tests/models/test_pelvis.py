@@ -705,3 +705,26 @@ def test_a_run_stopped_while_writing_leaves_out_as_it_was(tmp_path, monkeypatch)
         pm.run_pelvis_model(pm.PelvisConfig(forces=[200.0], out=str(out)))
     assert [p.name for p in out.iterdir()] == ["pelvis_100N.vtu"]
     assert (out / "pelvis_100N.vtu").read_text() == "an earlier run"
+
+
+def test_a_coarse_graded_mesh_widens_the_corridor_until_the_needles_fit(cgal, seg, site):
+    """At 5.625 mm (the 1.25x step above the default 4.5 mm) the graded interfaces crossed the needles within the
+    corridor of 1.5 voxels (4.5 mm) and `fe pelvis --mesh-size 5.625` failed; the corridor now widens a voxel at a
+    time: one widening, a valid mesh with the needles exact. Where no widening helps (12 mm) the error names
+    mesh_size; the default-size meshes keep their corridor (the `graded` fixture: none)."""
+    from needletissue.errors import InputError
+    from needletissue.models.pelvis.model import mesh_quality
+
+    v = gp.crop_to_site(gp.segmentation_label_volume(seg), site)
+    m = gp.build_mesh_smooth(seg, v, site, mesh_size=5.625, far_size=22.5)
+    assert m.info["corridor_widenings"] == 1 and m.info["corridor_margin_mm"] == pytest.approx(2.5 * v.spacing)
+    q = mesh_quality(m, v)
+    assert q["inverted"] == 0 and q["min_dihedral_deg"] >= 10
+    for name in ("needle_1", "needle_2"):
+        assert name in m.regions
+    with pytest.raises(InputError, match="mesh_size: 12 mm is too coarse at the needles"):
+        gp.build_mesh_smooth(seg, v, site, mesh_size=12.0, far_size=48.0)
+
+
+def test_default_graded_mesh_keeps_its_corridor(graded):
+    assert graded.info["corridor_widenings"] == 0 and graded.info["corridor_margin_mm"] == pytest.approx(4.5)

@@ -1000,6 +1000,11 @@ def needle_solids(axes, radius: float, clamp_frame, clamp_bottom, clamp_size, ba
 SEG_REGIONS = {"adipose": "adipose", "other_soft_tissue": "body_wall"}
 
 
+# The corridor's margin is margin_voxels voxels; a coarse graded mesh's interfaces can deviate from it by more (the
+# example CT at mesh sizes 5.625, 6 and 12 mm: edges of the needles crossed them), so it widens a voxel at a time.
+CORRIDOR_WIDENINGS = 4
+
+
 def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0,
                       needle_size: float | None = None, sacroiliac_gap: float | None = None,
                       margin_voxels: float = 1.5, far_size: float | None = None,
@@ -1017,6 +1022,7 @@ def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float 
     element's centroid (the corridor in which the exact solids are inserted)."""
     from scipy import ndimage
 
+    from needletissue.geometry.smooth import CorridorTooNarrow
     from needletissue.geometry.tetmesh import MeshConfig, _crop_and_coarsen, tet_mesh
 
     check_number("mesh_size", mesh_size, ge=0.5, le=20)
@@ -1031,9 +1037,19 @@ def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float 
     cfg = MeshConfig(size=mesh_size, crop=box, method="smooth", far_size=far_size, refine_radius=refine_radius)
     cfg.coarsen = not cfg.graded   # CGAL meshes the label map at any size: as it is
     coarse = vol.spacing * (1 if cfg.graded else max(1, int(np.floor(mesh_size / vol.spacing + 1e-9))))
-    solids = needle_solids([(b * RAS_LPS, t * RAS_LPS) for b, t in axes], r, frame * RAS_LPS, c_bottom * RAS_LPS,
-                           site.clamp_size, bar_len, needle_size, margin=r + margin_voxels * coarse)
-    tm = tet_mesh(seg, config=cfg, solids=solids)
+    margin = r + margin_voxels * coarse
+    for widened in range(CORRIDOR_WIDENINGS + 1):
+        solids = needle_solids([(b * RAS_LPS, t * RAS_LPS) for b, t in axes], r, frame * RAS_LPS,
+                               c_bottom * RAS_LPS, site.clamp_size, bar_len, needle_size, margin=margin)
+        try:
+            tm = tet_mesh(seg, config=cfg, solids=solids)
+            break
+        except CorridorTooNarrow:
+            if widened == CORRIDOR_WIDENINGS:
+                raise InputError("mesh_size", f"{mesh_size:g} mm is too coarse at the needles for the smooth mesher: "
+                                 "its tissue interfaces cross the needles even with the corridor around them widened "
+                                 f"to {margin - r:g} mm; give a smaller mesh_size, or the box mesher") from None
+            margin += coarse
     pts = tm.points * RAS_LPS
     names = np.empty(len(tm.cells), object)
     for n, ids in tm.regions.items():
@@ -1060,7 +1076,8 @@ def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float 
         f"mesh: the `segment` + `mesh` route (smooth shared interfaces, TetGen, cortex by volume) at size "
         f"{mesh_size} mm" + (f" graded to {far_size} mm at {refine_radius} mm (CGAL's interfaces)" if cfg.graded else "")
         + f" with the needles and the clamp inserted exactly (triangles {needle_size:.2f} mm); tissue "
-        f"within {margin_voxels} voxels of them by the voxel at the element centroid",
+        f"within {margin - r:g} mm ({(margin - r) / coarse:g} voxels) of them by the voxel at the element centroid"
+        + (f" (the corridor widened {widened} time(s) by a voxel: the interfaces crossed the solids)" if widened else ""),
         "segmentation: imaging.segment (other_soft_tissue -> body_wall; bone elements hip / sacrum / femur by "
         "the nearest bone voxel of the label map)",
     ]
@@ -1075,6 +1092,7 @@ def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float 
             label[SEG_REGIONS.get(base, base)] = label.get(SEG_REGIONS.get(base, base), 0.0) + float(counts[i])
     bones = np.bincount(vol.labels.ravel(), minlength=4) * vol.spacing ** 3
     label.update({"hip_bone": float(bones[1]), "sacrum": float(bones[2]), "femur": float(bones[3])})
+    tm.info.update(corridor_margin_mm=margin - r, corridor_widenings=widened)
     out = PelvisMesh(pts, tm.cells, regions, surfaces, site, paths, frame, axes, notes, tm.info,
                      {k: v for k, v in label.items() if v > 0})
     return out

@@ -147,6 +147,11 @@ class InterfaceSurfaces:
     info: dict = field(default_factory=dict)
 
 
+class CorridorTooNarrow(InputError):
+    """The solids' edges cross the tissue interfaces: the corridor of voxels relabelled around them is narrower than
+    the interfaces' deviation from it (a voxel, or a graded mesh's element there)."""
+
+
 @dataclass
 class Solids:
     """Closed solids (needles, clamp) meshed exactly into the smooth route, LPS mm.
@@ -1009,8 +1014,8 @@ def smooth_tet_mesh(seg, cfg, solids: Solids | None = None):
         plc_faces = np.vstack([surf.faces, np.asarray(solids.faces, np.int64) + len(surf.points)])
         e, _ = edge_face_crossings(plc_points, plc_faces)
         if len(e):
-            raise InputError("solids", f"{len(e)} edge(s) of the solids cross the tissue interfaces: the "
-                             f"corridor margin ({solids.margin} mm) is too small for this voxel size")
+            raise CorridorTooNarrow("solids", f"{len(e)} edge(s) of the solids cross the tissue interfaces: the "
+                                    f"corridor margin ({solids.margin:g} mm) is too small for this voxel or element size")
     t1 = time.perf_counter()
     cpu.append(time.process_time())
     bound = cfg.max_volume

@@ -343,7 +343,7 @@ def build(config: PelvisConfig):
     from needletissue.geometry import pelvis as gp
 
     seg = None
-    far = 4 * config.mesh_size if config.far_size is None else config.far_size
+    far = min(4 * config.mesh_size, 60.0) if config.far_size is None else config.far_size   # 60: MeshConfig's bound
     if config.mesher == "smooth":
         if far > config.mesh_size:   # the CGAL helper first: a missing CGAL is named before any work
             from needletissue.geometry.graded import helper
