@@ -28,6 +28,9 @@ def richardson(coarse: float, medium: float, fine: float, ratio: float) -> Richa
     if d1 == 0 or d2 == 0 or d1 / d2 <= 0:
         raise InputError("values", f"levels {coarse}, {medium}, {fine} do not converge monotonically: "
                                    "no Richardson extrapolation")
+    if abs(d2) >= abs(d1):  # order <= 0: the change grows with refinement, not in the asymptotic range
+        raise InputError("values", f"levels {coarse}, {medium}, {fine} change more from medium to fine than from "
+                                   "coarse to medium (observed order <= 0): no Richardson extrapolation")
     p = math.log(d1 / d2) / math.log(ratio)
     f0 = fine - d2 / (ratio**p - 1)
     return Richardson((coarse, medium, fine), ratio, p, f0, abs(fine - f0))
