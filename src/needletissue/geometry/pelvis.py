@@ -1001,7 +1001,8 @@ SEG_REGIONS = {"adipose": "adipose", "other_soft_tissue": "body_wall"}
 
 
 # The corridor's margin is margin_voxels voxels; a coarse graded mesh's interfaces can deviate from it by more (the
-# example CT at mesh sizes 5.625, 6 and 12 mm: edges of the needles crossed them), so it widens a voxel at a time.
+# example CT at 5.625-11 mm: edges of the needles crossed them; 12 mm and above: no widening helps), so it widens a
+# voxel at a time (docs/imaging.md, "The corridor at coarse graded sizes").
 CORRIDOR_WIDENINGS = 4
 
 
