@@ -14,7 +14,7 @@ not known more finely than the tissue elements); needles and clamp are exact OCC
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -1038,12 +1038,12 @@ def build_mesh_smooth(seg, vol: LabelVolume, site: NeedleSite, mesh_size: float 
     cfg = MeshConfig(size=mesh_size, crop=box, method="smooth", far_size=far_size, refine_radius=refine_radius)
     cfg.coarsen = not cfg.graded   # CGAL meshes the label map at any size: as it is
     coarse = vol.spacing * (1 if cfg.graded else max(1, int(np.floor(mesh_size / vol.spacing + 1e-9))))
-    margin = r + margin_voxels * coarse
+    solids = needle_solids([(b * RAS_LPS, t * RAS_LPS) for b, t in axes], r, frame * RAS_LPS, c_bottom * RAS_LPS,
+                           site.clamp_size, bar_len, needle_size, margin=r + margin_voxels * coarse)
+    margin = solids.margin
     for widened in range(CORRIDOR_WIDENINGS + 1):
-        solids = needle_solids([(b * RAS_LPS, t * RAS_LPS) for b, t in axes], r, frame * RAS_LPS,
-                               c_bottom * RAS_LPS, site.clamp_size, bar_len, needle_size, margin=margin)
         try:
-            tm = tet_mesh(seg, config=cfg, solids=solids)
+            tm = tet_mesh(seg, config=cfg, solids=replace(solids, margin=margin))   # the same triangles
             break
         except CorridorTooNarrow:
             if widened == CORRIDOR_WIDENINGS:
