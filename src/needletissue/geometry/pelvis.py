@@ -21,7 +21,7 @@ import numpy as np
 
 from needletissue.errors import InputError, check_number
 from needletissue.cache import cache_key, mesh_cache_dir, read_entry, sha256, write_entry
-from needletissue.geometry.tetmesh import unique_rows
+from needletissue.geometry.tetmesh import FAR_SIZE_MAX, unique_rows
 
 # Tissue ids of a LabelVolume (0 = void: air, viscera, anything not modelled).
 TISSUES = {
@@ -606,7 +606,7 @@ def build_mesh(vol: LabelVolume, site: NeedleSite, mesh_size: float = 3.0, needl
     """
     check_number("mesh_size", mesh_size, ge=0.5, le=20)
     needle_size = 2 * mesh_size / 3 if needle_size is None else check_number("needle_size", needle_size, ge=0.2, le=10)
-    far_size = 4 * mesh_size if far_size is None else check_number("far_size", far_size, ge=mesh_size, le=60)
+    far_size = 4 * mesh_size if far_size is None else check_number("far_size", far_size, ge=mesh_size, le=FAR_SIZE_MAX)
     check_number("cortical_thickness", cortical_thickness, gt=0, le=10)
     sacroiliac_gap = 1.5 * vol.spacing if sacroiliac_gap is None else sacroiliac_gap
     paths = needle_paths(vol, site)

@@ -24,6 +24,9 @@ def regular_tet_volume(edge: float) -> float:
     return edge ** 3 / (6.0 * np.sqrt(2.0))
 
 
+FAR_SIZE_MAX = 60   # mm: the largest graded far-field element size (MeshConfig.far_size and the models')
+
+
 @dataclass
 class MeshConfig:
     """Meshing parameters; lengths in mm."""
@@ -55,7 +58,7 @@ class MeshConfig:
         check_number("smoothing_iterations", self.smoothing_iterations, ge=0, le=500)
         check_number("smoothing_scale", self.smoothing_scale, ge=0, le=2)
         if self.far_size is not None:
-            check_number("far_size", self.far_size, ge=self.size, le=60)
+            check_number("far_size", self.far_size, ge=self.size, le=FAR_SIZE_MAX)
             if self.method != "smooth":
                 raise InputError("far_size", "a graded size needs method='smooth'")
         check_number("refine_radius", self.refine_radius, gt=0, le=500)

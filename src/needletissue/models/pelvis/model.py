@@ -27,6 +27,7 @@ import numpy as np
 
 from needletissue.errors import InputError, check_force, check_number
 from needletissue.fem.solvelog import SOLVE_LOG
+from needletissue.geometry.tetmesh import FAR_SIZE_MAX
 from needletissue.materials import tissue_bulk
 
 PAPER = {
@@ -188,7 +189,7 @@ class PelvisConfig:
         if self.far_size is not None:
             check_number("far_size", self.far_size)   # a number first: the hint compares it
             try:
-                check_number("far_size", self.far_size, ge=self.mesh_size, le=60)
+                check_number("far_size", self.far_size, ge=self.mesh_size, le=FAR_SIZE_MAX)
             except InputError as exc:
                 if not defaulted or self.far_size > self.mesh_size:   # the hint is for a far_size below it
                     raise
@@ -343,7 +344,7 @@ def build(config: PelvisConfig):
     from needletissue.geometry import pelvis as gp
 
     seg = None
-    far = min(4 * config.mesh_size, 60.0) if config.far_size is None else config.far_size   # 60: MeshConfig's bound
+    far = min(4 * config.mesh_size, FAR_SIZE_MAX) if config.far_size is None else config.far_size
     if config.mesher == "smooth":
         if far > config.mesh_size:   # the CGAL helper first: a missing CGAL is named before any work
             from needletissue.geometry.graded import helper
