@@ -726,5 +726,6 @@ def test_a_coarse_graded_mesh_widens_the_corridor_until_the_needles_fit(cgal, se
         gp.build_mesh_smooth(seg, v, site, mesh_size=12.0, far_size=48.0)
 
 
-def test_default_graded_mesh_keeps_its_corridor(graded):
-    assert graded.info["corridor_widenings"] == 0 and graded.info["corridor_margin_mm"] == pytest.approx(4.5)
+def test_default_graded_mesh_keeps_its_corridor(graded, vol):
+    """build_mesh_smooth's corridor: margin_voxels (1.5) voxels of the label map, not widened."""
+    assert graded.info["corridor_widenings"] == 0 and graded.info["corridor_margin_mm"] == pytest.approx(1.5 * vol.spacing)
