@@ -477,3 +477,77 @@ ctypes.CDLL(None).malloc_stats()
     assert run.returncode == 0, run.stderr
     heaps = re.findall(r"^Arena \d+:", run.stderr, re.M)
     assert len(heaps) >= 2 if arena_max else heaps == ["Arena 0:"]
+
+
+def test_gmres_solves_a_nonsymmetric_system_with_restarts_and_says_when_it_cannot():
+    """linsolve._gmres (right-preconditioned, restarted): to rtol with an exact, a rough and no preconditioner, across
+    restarts; None when maxiter preconditionings do not reach rtol; the count it reports is the preconditionings."""
+    rng = np.random.default_rng(0)
+    n = 60
+    A = np.eye(n) * 4 + rng.normal(size=(n, n)) / np.sqrt(n)  # non-symmetric, well conditioned
+    b = rng.normal(size=n)
+    exact = np.linalg.solve(A, b)
+    rough = np.linalg.inv(A + 0.3 * rng.normal(size=(n, n)) / np.sqrt(n))
+    count = [0]
+
+    def counted(P):
+        def apply(r):
+            count[0] += 1
+            return P @ r
+        return apply
+
+    used = {}
+    for name, P, restart in (("exact", np.linalg.inv(A), 30), ("rough", rough, 30), ("none", np.eye(n), 5)):
+        count[0] = 0
+        x, used[name] = linsolve._gmres(A.__matmul__, counted(P), b, 1e-12, 200, restart=restart)
+        assert used[name] == count[0]
+        assert np.linalg.norm(A @ x - b) <= 1e-12 * np.linalg.norm(b)
+        np.testing.assert_allclose(x, exact, rtol=0, atol=1e-10 * np.abs(exact).max())
+    assert used["exact"] == 1 < used["rough"] < used["none"]  # the identity took restarts
+    x, n_used = linsolve._gmres(A.__matmul__, counted(np.eye(n)), b, 1e-12, 3)
+    assert x is None and n_used <= 3
+
+
+@pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
+def test_nonsymmetric_tangents_by_gmres_on_their_symmetric_parts_factor(monkeypatch):
+    """linsolve.SYM_GMRES: from SYM_GMRES_ROWS rows a non-symmetric (friction) tangent is solved by GMRES
+    preconditioned with the LDL^T of its symmetric part, to SYM_GMRES_RTOL, as the LU solves it; a substep's
+    resolve() is GMRES on the kept tangent; a tangent whose GMRES misses SYM_GMRES_MAXITER is solved by the LU, and
+    so is every later one; below SYM_GMRES_ROWS rows the LU."""
+    import scipy.sparse as sp
+
+    S = _clamped_needle_tangent()[1]
+    A = _nonsymmetric(S)
+    b = np.random.default_rng(3).normal(size=A.shape[0])
+    ref = sp.linalg.spsolve(A.tocsc(), b)
+    plain = linsolve.make("pardiso")
+    assert A.shape[0] < linsolve.SYM_GMRES_ROWS
+    x = plain(A, b)
+    assert plain.counts == {"factorisations": 1, "gmres_solves": 0, "gmres_back_substitutions": 0}
+    plain.close()
+
+    monkeypatch.setattr(linsolve, "SYM_GMRES_ROWS", 0)
+    s = linsolve.make("pardiso")
+    s.keep_factor(True)
+    x = s(A, b)
+    counts = s.counts
+    assert counts["factorisations"] == 1 and counts["gmres_solves"] == 1
+    assert 1 < counts["gmres_back_substitutions"] <= linsolve.SYM_GMRES_MAXITER
+    assert np.linalg.norm(A @ x - b) <= linsolve.SYM_GMRES_RTOL * np.linalg.norm(b)
+    np.testing.assert_allclose(x, ref, rtol=0, atol=1e-8 * np.abs(ref).max())
+    c = np.random.default_rng(4).normal(size=A.shape[0])
+    y = s.resolve(c)  # GMRES on A again, to the substeps' tolerance, no factorisation
+    assert s.counts["factorisations"] == 1 and s.counts["gmres_back_substitutions"] > counts["gmres_back_substitutions"]
+    assert np.linalg.norm(A @ y - c) <= linsolve.SYM_GMRES_RESOLVE_RTOL * np.linalg.norm(c)
+    s.release()
+    assert s.resolve(c) is None
+
+    far = (S + 0.3 * abs(S).max() * sp.random(*S.shape, density=1e-2, random_state=5, format="csr")).tocsr()
+    monkeypatch.setattr(linsolve, "SYM_GMRES_MAXITER", 3)  # far from symmetric: 3 back-substitutions do not do
+    x = s(far, b)
+    assert s.counts["factorisations"] == 3 and s.counts["gmres_solves"] == 1  # its symmetric part's, then the LU
+    assert np.linalg.norm(far @ x - b) < 1e-10 * np.linalg.norm(b)
+    assert not s._fun.sym_gmres
+    s(A, b)  # and the LU from now on
+    assert s.counts["factorisations"] == 4 and s.counts["gmres_solves"] == 1
+    s.close()

@@ -75,6 +75,16 @@ class TimedSolver:
         return "" if single is None else ("single+cg" if single else "double")
 
     @property
+    def counts(self) -> dict[str, int]:
+        """Pardiso's factorisations, and the tangents solved by GMRES on their symmetric part's factor (SYM_GMRES)
+        with the back-substitutions it took (substeps' included); {} for the other backends."""
+        f = self._fun
+        if not isinstance(f, _Pardiso):
+            return {}
+        return {"factorisations": f.factorisations, "gmres_solves": f.gmres_solves,
+                "gmres_back_substitutions": f.gmres_back_substitutions}
+
+    @property
     def can_resolve(self) -> bool:
         """Whether the backend can keep its last factorisation for `resolve` (Pardiso with reuse)."""
         return bool(getattr(self._fun, "can_keep", False))
@@ -257,6 +267,75 @@ def _single(M, b):
     return M32, np.asfortranarray(b, np.float32)
 
 
+# Frictional contact's non-symmetric tangent from SYM_GMRES_ROWS rows: GMRES, right-preconditioned by the LDL^T of
+# its symmetric part in double precision, instead of the LU. The friction's non-symmetric part is small, and the
+# symmetric part's factor has half the LU's fill and flops: on the default anatomical model's captured tangents
+# (318,505 rows) LDL^T 18 s wall / 38 s CPU and 2.3 GB against the LU's 41 s / 78 s and 4.5 GB, then 25-58
+# back-substitutions of ~0.3 s to 1e-10 (docs/bench.md, "The symmetric part's LDL^T as GMRES's preconditioner"). In
+# single precision the same preconditioner loses a soft mode and GMRES stalls; below ~100k rows the LU is cheap
+# against the back-substitutions. A tangent whose GMRES misses SYM_GMRES_MAXITER is solved by the LU, and so is
+# every later one. A substep's resolve() is GMRES on the kept tangent to SYM_GMRES_RESOLVE_RTOL.
+SYM_GMRES = True
+SYM_GMRES_ROWS = 100_000
+SYM_GMRES_RTOL = 1e-10
+SYM_GMRES_RESOLVE_RTOL = 1e-2
+SYM_GMRES_MAXITER = 100
+# ... or to the residual a direct solver leaves on an ill-conditioned tangent: a normwise backward error
+# |r|_2 / (|A|_inf |x|_inf + |b|_inf) of SYM_GMRES_BACKWARD (the LU's is 3e-16 to 2e-15 on the captured
+# tangents; a coarse anatomical tangent whose LU leaves 1.1e-9 of |b| stalls GMRES at 8e-10)
+SYM_GMRES_BACKWARD = 1e-14
+# LDL^T of the symmetric part: our METIS ordering (2, 5), Bunch-Kaufman pivots perturbed at 1e-8 (10: MKL's
+# default for symmetric indefinite), no refinement (8), no scaling or matching (11, 13: slower to analyse,
+# 5.5-7.8 s against 1.2 s, and the same GMRES counts)
+SYM_PART_IPARM = {1: 1, 2: 2, 8: 0, 10: 8, 18: -1}
+SYM_PART = "symmetric part"  # _Pardiso's solver (mtype -2) for it
+
+
+def _gmres(A, precondition, b, rtol: float, maxiter: int, restart: int = 60, x0=None, atol: float = 0.0):
+    """Right-preconditioned restarted GMRES on A x = b (A: a matvec, precondition: r -> M^-1 r; a fixed M), from
+    x0 (default precondition(b), which counts as one preconditioning either way); (x, preconditionings), x None
+    if the residual is not below max(rtol |b|, atol) within maxiter of them. Only the Krylov basis is stored: x's
+    update is one more preconditioning per cycle."""
+    nb = np.linalg.norm(b)
+    x = precondition(b) if x0 is None else x0
+    used = 1
+    if nb == 0:
+        return x, used
+    target = max(rtol * nb, atol)
+    r = b - A(x)
+    while True:
+        beta = np.linalg.norm(r)
+        if beta <= target:
+            return x, used
+        if used + 2 > maxiter or not np.isfinite(beta):  # a cycle needs two preconditionings
+            return None, used
+        V = [r / beta]
+        H = np.zeros((restart + 1, restart))
+        g = np.zeros(restart + 1)
+        g[0] = beta
+        for j in range(min(restart, maxiter - used - 1)):
+            w = A(precondition(V[j]))
+            used += 1
+            for i in range(j + 1):  # modified Gram-Schmidt
+                H[i, j] = w @ V[i]
+                w = w - H[i, j] * V[i]
+            H[j + 1, j] = np.linalg.norm(w)
+            y = np.linalg.lstsq(H[:j + 2, :j + 1], g[:j + 2], rcond=None)[0]
+            estimate = np.linalg.norm(g[:j + 2] - H[:j + 2, :j + 1] @ y)  # = |b - A x| in exact arithmetic
+            if estimate <= target or H[j + 1, j] == 0 or not np.isfinite(estimate):
+                break
+            V.append(w / H[j + 1, j])
+        x = x + precondition(np.column_stack(V[:len(y)]) @ y)
+        used += 1
+        r = b - A(x)
+
+
+def _backward(norm_A: float, x, b) -> float:
+    """The residual's 2-norm at a normwise backward error of SYM_GMRES_BACKWARD, |A|_inf = norm_A, for a
+    solution near x (SYM_GMRES)."""
+    return SYM_GMRES_BACKWARD * (norm_A * float(np.abs(x).max()) + float(np.abs(b).max()))
+
+
 def _symmetric(upper):
     """x -> A x for the symmetric A whose upper triangle (CSR) is `upper`."""
     d, lower = upper.diagonal(), upper.T.tocsr()
@@ -318,6 +397,7 @@ class _Pardiso:
 
         self.reuse = reuse
         self.solvers = {m: PyPardisoSolver(mtype=m) for m in (2, -2, 11)}
+        self.solvers[SYM_PART] = PyPardisoSolver(mtype=-2)  # a non-symmetric tangent's symmetric part (SYM_GMRES)
         # Cholesky: MKL's parameters (iparm[0] = 0) add two steps of iterative refinement to every
         # solve, each a residual and a back-substitution: 0.088 -> 0.036 s CPU per solve without,
         # same relative residual (2.8e-11) on the needle model's tangent. With no pivot perturbed
@@ -327,6 +407,13 @@ class _Pardiso:
             self.solvers[2].set_iparm(i, v)
         for i, v in LU_IPARM.items():
             self.solvers[11].set_iparm(i, v)
+        for i, v in SYM_PART_IPARM.items():
+            self.solvers[SYM_PART].set_iparm(i, v)
+        self.sym_gmres = True  # non-symmetric tangents by SYM_GMRES until one misses, then by the LU
+        self.gmres_tangent = None  # the tangent whose symmetric part's factor is kept, for resolve()
+        self.factorisations = 0
+        self.gmres_solves = 0  # tangents solved by SYM_GMRES, and their back-substitutions (resolve()'s included)
+        self.gmres_back_substitutions = 0
         self.definite = True  # try Cholesky first until a tangent is not positive definite
         self.symmetric = True  # False after a non-symmetric matrix: the LU for every later one, untested
         self.single = single  # Cholesky in single precision, refined by CG, until CG does not converge
@@ -349,10 +436,11 @@ class _Pardiso:
     def close(self):
         self._release(self.solvers)
         self.pattern.clear()
-        self.kept = None
+        self.kept = self.gmres_tangent = None
 
     def release(self):
         """Free the kept factor (phase 0), keep the analysis."""
+        self.gmres_tangent = None
         if self.kept is not None:
             import scipy.sparse as sp
 
@@ -369,6 +457,14 @@ class _Pardiso:
         if self.kept is None:
             return None
         ps, M, single = self.kept
+        if self.gmres_tangent is not None:  # the kept factor is the tangent's symmetric part's (SYM_GMRES)
+            (A, norm_A), b = self.gmres_tangent, np.asarray(b, float)
+            back = self._back(ps, M)
+            x0 = back(b)
+            x, used = _gmres(A.__matmul__, back, b, SYM_GMRES_RESOLVE_RTOL, SYM_GMRES_MAXITER, x0=x0,
+                             atol=_backward(norm_A, x0, b))
+            self.gmres_back_substitutions += used
+            return x
         if single:
             return self._back(ps, M)(np.asarray(b, float))
         b = ps._check_b(M, b)
@@ -407,7 +503,43 @@ class _Pardiso:
                 self.definite = False
                 self.solvers[2].free_memory(everything=True)
                 self.pattern.pop(2, None)
+        if not sym and self.sym_gmres and SYM_GMRES and M.shape[0] >= SYM_GMRES_ROWS:
+            x = self._sym_gmres(M, b)
+            if x is not None:
+                return x
+            self.sym_gmres = False  # missed: the LU for this tangent and every later one
         return self._solve(-2 if sym else 11, M, b)
+
+    def _sym_gmres(self, M, b):
+        """x = M^-1 b (M non-symmetric, CSR) by GMRES preconditioned with the LDL^T of M's symmetric part
+        (SYM_GMRES); None, the factor freed, if it does not reach SYM_GMRES_RTOL in SYM_GMRES_MAXITER
+        back-substitutions. With `keep` the factor and M stay for resolve()."""
+        import scipy.sparse as sp
+
+        S = sp.triu(M + M.T, format="csr")
+        S.data *= 0.5
+        S.sort_indices()
+        from pypardiso.pardiso_wrapper import PyPardisoError
+
+        keep, self.keep = self.keep, True
+        try:
+            x0 = self._solve(SYM_PART, S, b)
+        except PyPardisoError:  # e.g. singular: the LU will say so
+            return None
+        finally:
+            self.keep = keep
+        ps, F, _ = self.kept
+        norm_A = float(np.abs(M).sum(axis=1).max())
+        x, used = _gmres(M.__matmul__, self._back(ps, F), b, SYM_GMRES_RTOL, SYM_GMRES_MAXITER, x0=x0,
+                         atol=_backward(norm_A, x0, b))
+        self.gmres_back_substitutions += used
+        if x is None or not keep:
+            self.release()
+        else:
+            self.gmres_tangent = (sp.csr_matrix(M), norm_A)  # our own object: the caller may drop its values
+        if x is not None:
+            self.gmres_solves += 1
+        return x
 
     def _solve(self, mtype, M, b):
         import scipy.sparse as sp
@@ -439,7 +571,7 @@ class _Pardiso:
                 ps.free_memory(everything=True)
         if fit is None:
             self.pattern.pop(mtype, None)
-            if mtype in (2, 11):  # the Cholesky's and the LU's iparm are ours (iparm 1 = 1); LDL^T keeps MKL's
+            if mtype in (2, 11, SYM_PART):  # these iparm are ours (iparm 1 = 1); LDL^T keeps MKL's
                 perm = nested_dissection(M) if ORDERING == "metis" else None
                 ps.perm = np.zeros(0, np.int32) if perm is None else perm + 1
                 ps.set_iparm(5, 0 if perm is None else 1)  # 1: the fill-reducing ordering is ps.perm
@@ -455,6 +587,7 @@ class _Pardiso:
         try:
             ps.set_phase(22)
             ps._call_pardiso(F, Fb)
+            self.factorisations += 1
             if single:
                 x = _pcg(_symmetric(M), self._back(ps, F), b, SINGLE_RTOL, SINGLE_MAXITER)
             else:
@@ -481,11 +614,14 @@ class _Pardiso:
 
     @staticmethod
     def _back(ps, F):
-        """r -> F^-1 r by one back-substitution with the (single-precision) factor of F, in double."""
+        """r -> F^-1 r by one back-substitution with the factor of F (single or double precision), in double."""
+        single = F.dtype == np.float32
+
         def back(r):
             ps.set_phase(33)
             try:
-                return ps._call_pardiso(F, np.asfortranarray(r, np.float32)).astype(float)
+                return np.asarray(ps._call_pardiso(F, np.asfortranarray(r, np.float32) if single
+                                                   else np.asarray(r, float)), float)
             finally:
                 ps.set_phase(13)
         return back

@@ -55,6 +55,9 @@ class FEResult:
     drucker_unstable_fraction: dict[str, float] = field(default_factory=dict)
     newton_substeps: int = 0  # modified-Newton substeps (same factorisation) since the start of the solve
     linear_factor: str = ""  # Pardiso's Cholesky: "single+cg" (linsolve.SINGLE) or "double"; "" for the others
+    # Pardiso since the start of the solve: factorisations, and the tangents solved by GMRES on their symmetric
+    # part's factor (linsolve.SYM_GMRES) with its back-substitutions; {} for the other backends
+    linear_counts: dict[str, int] = field(default_factory=dict)
 
     def check_drucker(self, materials: dict[str, str]) -> "FEResult":
         """Flag cells beyond their material's Drucker-stable range (materials.stability: the law's
@@ -109,6 +112,7 @@ class FEResult:
             "wall_time_s": self.wall_time_s,
             "linear_solver": self.linear_solver,
             "linear_factor": self.linear_factor,
+            "linear_counts": self.linear_counts,
             "timing_s": self.timing_s,
             "mesh_stats": self.mesh_stats,
             "region_tags": self.region_tags,

@@ -749,7 +749,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                                     copy.deepcopy(facts["stats"]), ncut, linear.name,
                                     {"newton": newton_s, "linear_solve": linear.seconds,
                                      "assembly_and_update": newton_s - linear.seconds}, norms,
-                                    newton_substeps=nsub, linear_factor=linear.factor))
+                                    newton_substeps=nsub, linear_factor=linear.factor,
+                                    linear_counts=linear.counts))
     return out
 
 
@@ -810,6 +811,7 @@ def _result(model, loads, fvec, lam, nsteps, nit, ncut, wall, linear, newton_s, 
         linear_solver=linear.name,
         timing_s={"newton": newton_s, "linear_solve": linear.seconds, "assembly_and_update": newton_s - linear.seconds},
         residual_norms=[list(n) for n in norms], newton_substeps=nsub, linear_factor=linear.factor,
+        linear_counts=linear.counts,
         region_tags=tags, points=mesh.points,
         cells=mesh.cells,
         cell_data={"von_mises_MPa": vm, "principal_stretches": stretch, "cauchy_stress_MPa": cauchy,

@@ -600,7 +600,8 @@ def _run_pelvis_model(config: PelvisConfig, out_dir: Path | None) -> PelvisResul
         timing_s={"mesh": t_mesh, "model": t_model, "solve": t_solve, "cpu_s": time.process_time() - c0,
                   # solve = Newton (assembly + linear solves) + stress/VTU evaluation
                   "newton": fe[-1].timing_s.get("newton"), "linear_solve": fe[-1].timing_s.get("linear_solve"),
-                  "linear_solver": fe[-1].linear_solver, "linear_factor": fe[-1].linear_factor},
+                  "linear_solver": fe[-1].linear_solver, "linear_factor": fe[-1].linear_factor,
+                  "linear_counts": fe[-1].linear_counts},
         ritz=ritz,
     )
     if contact is not None:
