@@ -271,10 +271,13 @@ def _single(M, b):
 # its symmetric part in double precision, instead of the LU. The friction's non-symmetric part is small, and the
 # symmetric part's factor has half the LU's fill and flops: on the default anatomical model's captured tangents
 # (318,505 rows) LDL^T 18 s wall / 38 s CPU and 2.3 GB against the LU's 41 s / 78 s and 4.5 GB, then 25-58
-# back-substitutions of ~0.3 s to 1e-10 (docs/bench.md, "The symmetric part's LDL^T as GMRES's preconditioner"). In
-# single precision the same preconditioner loses a soft mode and GMRES stalls; below ~100k rows the LU is cheap
-# against the back-substitutions. A tangent whose GMRES misses SYM_GMRES_MAXITER is solved by the LU, and so is
-# every later one. A substep's resolve() is GMRES on the kept tangent to SYM_GMRES_RESOLVE_RTOL.
+# back-substitutions of ~0.3 s to 1e-10. The whole default contact run, back to back: solve 843 -> 790 s wall,
+# 1,461 -> 1,067 s CPU, peak 9.44 -> 7.04 GiB, the same Newton iterations (docs/bench.md, "Frictional contact
+# against bonded"). In single precision the preconditioner loses a soft mode and GMRES stalls; below ~100k rows the
+# LU is cheap against the back-substitutions; on the needle models the friction part is not small and GMRES stalls.
+# A tangent whose GMRES misses SYM_GMRES_MAXITER is solved by the LU, and so is every later one. A substep's
+# resolve() is GMRES on the kept tangent to SYM_GMRES_RESOLVE_RTOL (1e-6: the same iterations, 675 back-substitutions
+# in 25 substeps, +170 s wall; the preconditioner alone: 2 more Newton iterations).
 SYM_GMRES = True
 SYM_GMRES_ROWS = 100_000
 SYM_GMRES_RTOL = 1e-10
