@@ -95,8 +95,8 @@ class TimedSolver:
             self._fun.keep = keep
 
     def resolve(self, b):
-        """x = A^-1 b with the factor of the last call's A (one back-substitution), or None when no
-        factor is kept. The factor stays kept."""
+        """x = A^-1 b with the factor of the last call's A (one back-substitution; GMRES after SYM_GMRES), or None
+        when no factor is kept. The factor stays kept."""
         fun = getattr(self._fun, "resolve", None)
         if fun is None:
             return None
@@ -456,7 +456,8 @@ class _Pardiso:
     def resolve(self, b):
         """Back-substitution (phase 33) with the kept factor; None when none is kept. With a single-precision
         factor too (no CG: a substep corrects with a stale tangent anyway, and Anderson mixing absorbs the
-        rounding; CG there cost more than the factorisations saved on the needle model)."""
+        rounding; CG there cost more than the factorisations saved on the needle model). After SYM_GMRES: GMRES on
+        the kept tangent to SYM_GMRES_RESOLVE_RTOL (None if it misses)."""
         if self.kept is None:
             return None
         ps, M, single = self.kept
@@ -511,6 +512,8 @@ class _Pardiso:
             if x is not None:
                 return x
             self.sym_gmres = False  # missed: the LU for this tangent and every later one
+            self.solvers[SYM_PART].free_memory(everything=True)
+            self.pattern.pop(SYM_PART, None)
         return self._solve(-2 if sym else 11, M, b)
 
     def _sym_gmres(self, M, b):
@@ -518,12 +521,11 @@ class _Pardiso:
         (SYM_GMRES); None, the factor freed, if it does not reach SYM_GMRES_RTOL in SYM_GMRES_MAXITER
         back-substitutions. With `keep` the factor and M stay for resolve()."""
         import scipy.sparse as sp
+        from pypardiso.pardiso_wrapper import PyPardisoError
 
         S = sp.triu(M + M.T, format="csr")
         S.data *= 0.5
         S.sort_indices()
-        from pypardiso.pardiso_wrapper import PyPardisoError
-
         keep, self.keep = self.keep, True
         try:
             x0 = self._solve(SYM_PART, S, b)
