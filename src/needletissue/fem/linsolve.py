@@ -334,9 +334,22 @@ def _gmres(A, precondition, b, rtol: float, maxiter: int, restart: int = 60, x0=
 
 
 def _backward(norm_A: float, x, b) -> float:
-    """The residual's 2-norm at a normwise backward error of SYM_GMRES_BACKWARD, |A|_inf = norm_A, for a
-    solution near x (SYM_GMRES)."""
+    """The residual's 2-norm at a normwise backward error of SYM_GMRES_BACKWARD at x, |A|_inf = norm_A (SYM_GMRES)."""
     return SYM_GMRES_BACKWARD * (norm_A * float(np.abs(x).max()) + float(np.abs(b).max()))
+
+
+def _sym_part_gmres(A, norm_A: float, back, b, x0, rtol: float):
+    """GMRES on A x = b from x0 = back(b) (SYM_GMRES) to rtol |b|, or to SYM_GMRES_BACKWARD at the x it returns
+    (the bound is set from the iterate it starts from, so it is checked again at the end); (x or None, back-
+    substitutions, x0's included), within SYM_GMRES_MAXITER."""
+    x, used = x0, 1
+    while True:
+        x1, more = _gmres(A.__matmul__, back, b, rtol, SYM_GMRES_MAXITER - used + 1, x0=x,
+                          atol=_backward(norm_A, x, b))
+        used += more - 1  # _gmres counts its x0 as one
+        if x1 is None or np.linalg.norm(b - A @ x1) <= max(rtol * np.linalg.norm(b), _backward(norm_A, x1, b)):
+            return x1, used
+        x = x1
 
 
 def _symmetric(upper):
@@ -464,9 +477,7 @@ class _Pardiso:
         if self.gmres_tangent is not None:  # the kept factor is the tangent's symmetric part's (SYM_GMRES)
             (A, norm_A), b = self.gmres_tangent, np.asarray(b, float)
             back = self._back(ps, M)
-            x0 = back(b)
-            x, used = _gmres(A.__matmul__, back, b, SYM_GMRES_RESOLVE_RTOL, SYM_GMRES_MAXITER, x0=x0,
-                             atol=_backward(norm_A, x0, b))
+            x, used = _sym_part_gmres(A, norm_A, back, b, back(b), SYM_GMRES_RESOLVE_RTOL)
             self.gmres_back_substitutions += used
             return x
         if single:
@@ -535,8 +546,7 @@ class _Pardiso:
             self.keep = keep
         ps, F, _ = self.kept
         norm_A = float(np.abs(M).sum(axis=1).max())
-        x, used = _gmres(M.__matmul__, self._back(ps, F), b, SYM_GMRES_RTOL, SYM_GMRES_MAXITER, x0=x0,
-                         atol=_backward(norm_A, x0, b))
+        x, used = _sym_part_gmres(M, norm_A, self._back(ps, F), b, x0, SYM_GMRES_RTOL)
         self.gmres_back_substitutions += used
         if x is None or not keep:
             self.release()
