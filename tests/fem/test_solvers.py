@@ -482,15 +482,21 @@ ctypes.CDLL(None).malloc_stats()
     assert len(heaps) >= 2 if arena_max else heaps == ["Arena 0:"]
 
 
-def test_gmres_solves_a_nonsymmetric_system_with_restarts_and_says_when_it_cannot():
-    """linsolve._gmres (right-preconditioned, restarted): to rtol with an exact, a rough and no preconditioner, across
-    restarts; None when maxiter preconditionings do not reach rtol; the count it reports is the preconditionings."""
-    rng = np.random.default_rng(0)
-    n = 60
+def _nonsymmetric_system(n=60, seed=0):
+    rng = np.random.default_rng(seed)
     A = np.eye(n) * 4 + rng.normal(size=(n, n)) / np.sqrt(n)  # non-symmetric, well conditioned
-    b = rng.normal(size=n)
-    exact = np.linalg.solve(A, b)
     rough = np.linalg.inv(A + 0.3 * rng.normal(size=(n, n)) / np.sqrt(n))
+    return A, rough, rng.normal(size=n)
+
+
+def test_recycled_gcr_solves_a_nonsymmetric_system_and_says_when_it_cannot():
+    """linsolve._Recycled (right-preconditioned GCR): to rtol with an exact, a rough and no preconditioner, also when
+    a small store makes it restart; None when maxiter back-substitutions do not reach rtol; the count it reports is
+    the preconditionings."""
+    import scipy.sparse as sp
+
+    A, rough, b = _nonsymmetric_system()
+    exact = np.linalg.solve(A, b)
     count = [0]
 
     def counted(P):
@@ -500,15 +506,44 @@ def test_gmres_solves_a_nonsymmetric_system_with_restarts_and_says_when_it_canno
         return apply
 
     used = {}
-    for name, P, restart in (("exact", np.linalg.inv(A), 30), ("rough", rough, 30), ("none", np.eye(n), 5)):
+    for name, P, capacity in (("exact", np.linalg.inv(A), 30), ("rough", rough, 30), ("none", np.eye(len(b)), 5)):
         count[0] = 0
-        x, used[name] = linsolve._gmres(A.__matmul__, counted(P), b, 1e-12, 200, restart=restart)
+        x, used[name] = linsolve._Recycled(sp.csr_matrix(A), counted(P), capacity).solve(b, 1e-12, 200)
         assert used[name] == count[0]
         assert np.linalg.norm(A @ x - b) <= 1e-12 * np.linalg.norm(b)
         np.testing.assert_allclose(x, exact, rtol=0, atol=1e-10 * np.abs(exact).max())
-    assert used["exact"] == 1 < used["rough"] < used["none"]  # the identity took restarts
-    x, n_used = linsolve._gmres(A.__matmul__, counted(np.eye(n)), b, 1e-12, 3)
-    assert x is None and n_used <= 3
+    assert used["exact"] == 1 < used["rough"] < used["none"]
+    x, n_used = linsolve._Recycled(sp.csr_matrix(A), counted(np.eye(len(b))), 30).solve(b, 1e-12, 3)
+    assert x is None and n_used == 3
+
+
+def test_recycled_gcr_is_minimal_residual_and_reuses_its_directions():
+    """After m back-substitutions the store spans GMRES's space, P^-1 K_m(A P^-1, b): the residual left is the
+    least-squares minimum over it, the images C = A Z orthonormal. A later right-hand side is projected on the
+    store first: b scaled costs no back-substitution, b slightly perturbed fewer than from scratch."""
+    import scipy.sparse as sp
+
+    A, P, b = _nonsymmetric_system(seed=1)
+    P = P + 0.5 * np.random.default_rng(2).normal(size=P.shape) / np.sqrt(len(b))  # a poor preconditioner
+    for m in (1, 3, 6):
+        s = linsolve._Recycled(sp.csr_matrix(A), P.__matmul__, 30)
+        assert s.solve(b, 0.0, m) == (None, m)
+        C, Z = s.C[:, :s.k], s.Z[:, :s.k]
+        np.testing.assert_allclose(C.T @ C, np.eye(m), atol=1e-12)
+        np.testing.assert_allclose(A @ Z, C, atol=1e-12)
+        K = [b]
+        for _ in range(m - 1):
+            K.append(A @ (P @ K[-1]))
+        AZ = A @ P @ np.column_stack(K)
+        best = np.linalg.norm(b - AZ @ np.linalg.lstsq(AZ, b, rcond=None)[0])
+        assert np.linalg.norm(b - C @ (C.T @ b)) == pytest.approx(best, rel=1e-8)
+    s = linsolve._Recycled(sp.csr_matrix(A), P.__matmul__, 60)
+    fresh = s.solve(b, 1e-10, 100)[1]
+    x, again = s.solve(3 * b, 1e-10, 100)
+    assert again == 0 and np.linalg.norm(A @ x - 3 * b) <= 1e-10 * 3 * np.linalg.norm(b)
+    c = b + 1e-3 * np.random.default_rng(3).normal(size=len(b))
+    x, near = s.solve(c, 1e-10, 100)
+    assert near < fresh and np.linalg.norm(A @ x - c) <= 1e-10 * np.linalg.norm(c)
 
 
 @pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
@@ -538,8 +573,10 @@ def test_nonsymmetric_tangents_by_gmres_on_their_symmetric_parts_factor(monkeypa
     assert 1 < counts["gmres_back_substitutions"] <= linsolve.SYM_GMRES_MAXITER
     assert np.linalg.norm(A @ x - b) <= linsolve.SYM_GMRES_RTOL * np.linalg.norm(b)
     np.testing.assert_allclose(x, ref, rtol=0, atol=1e-8 * np.abs(ref).max())
+    y = s.resolve(2 * b)  # in the span of the directions kept: no back-substitution
+    assert s.counts == counts and np.linalg.norm(A @ y - 2 * b) <= linsolve.SYM_GMRES_RTOL * 2 * np.linalg.norm(b)
     c = np.random.default_rng(4).normal(size=A.shape[0])
-    y = s.resolve(c)  # GMRES on A again, to the substeps' tolerance, no factorisation
+    y = s.resolve(c)  # GMRES (GCR) on A again, to the substeps' tolerance, no factorisation
     assert s.counts["factorisations"] == 1 and s.counts["gmres_back_substitutions"] > counts["gmres_back_substitutions"]
     assert np.linalg.norm(A @ y - c) <= linsolve.SYM_GMRES_RESOLVE_RTOL * np.linalg.norm(c)
     s.release()

@@ -275,14 +275,17 @@ def _single(M, b):
 # 1,461 -> 1,067 s CPU, peak 9.44 -> 7.04 GiB, the same Newton iterations (docs/bench.md, "Frictional contact
 # against bonded"). In single precision the preconditioner loses a soft mode and GMRES stalls; below ~100k rows the
 # LU is cheap against the back-substitutions; on the needle models the friction part is not small and GMRES stalls.
-# A tangent whose GMRES misses SYM_GMRES_MAXITER is solved by the LU, and so is every later one. A substep's
-# resolve() is GMRES on the kept tangent to SYM_GMRES_RESOLVE_RTOL (1e-6: the same iterations, 675 back-substitutions
-# in 25 substeps, +170 s wall; the preconditioner alone: 2 more Newton iterations).
+# A tangent whose GMRES misses SYM_GMRES_MAXITER is solved by the LU, and so is every later one. GMRES runs as GCR
+# that keeps its directions (_Recycled): a substep's resolve() on the kept tangent starts from the Newton solve's and
+# the earlier substeps' directions and needs 1-10 back-substitutions to SYM_GMRES_RESOLVE_RTOL, where plain GMRES
+# needed ~15 to 1e-2 (default contact run, back to back: 895 -> 633 back-substitutions, solve 903 -> 776 s wall,
+# the same 16 Newton iterations; at 1e-2 the substeps then converge less and the 100 N increment takes one more).
 SYM_GMRES = True
 SYM_GMRES_ROWS = 100_000
 SYM_GMRES_RTOL = 1e-10
-SYM_GMRES_RESOLVE_RTOL = 1e-2
+SYM_GMRES_RESOLVE_RTOL = 1e-4
 SYM_GMRES_MAXITER = 100
+SYM_GMRES_RECYCLE = 100  # directions kept per tangent (_Recycled; 2 vectors each: 510 MB at 318,505 rows)
 # ... or to the residual a direct solver leaves on an ill-conditioned tangent: a normwise backward error
 # |r|_2 / (|A|_inf |x|_inf + |b|_inf) of SYM_GMRES_BACKWARD (the LU's is 3e-16 to 2e-15 on the captured
 # tangents; a coarse anatomical tangent whose LU leaves 1.1e-9 of |b| stalls GMRES at 8e-10)
@@ -294,62 +297,67 @@ SYM_PART_IPARM = {1: 1, 2: 2, 8: 0, 10: 8, 18: -1}
 SYM_PART = "symmetric part"  # _Pardiso's solver (mtype -2) for it
 
 
-def _gmres(A, precondition, b, rtol: float, maxiter: int, restart: int = 60, x0=None, atol: float = 0.0):
-    """Right-preconditioned restarted GMRES on A x = b (A: a matvec, precondition: r -> M^-1 r; a fixed M), from
-    x0 (default precondition(b), which counts as one preconditioning either way); (x, preconditionings), x None
-    if the residual is not below max(rtol |b|, atol) within maxiter of them. Only the Krylov basis is stored: x's
-    update is one more preconditioning per cycle."""
-    nb = np.linalg.norm(b)
-    x = precondition(b) if x0 is None else x0
-    used = 1
-    if nb == 0:
-        return x, used
-    target = max(rtol * nb, atol)
-    r = b - A(x)
-    while True:
-        beta = np.linalg.norm(r)
-        if beta <= target:
-            return x, used
-        if used + 2 > maxiter or not np.isfinite(beta):  # a cycle needs two preconditionings
-            return None, used
-        V = [r / beta]
-        H = np.zeros((restart + 1, restart))
-        g = np.zeros(restart + 1)
-        g[0] = beta
-        for j in range(min(restart, maxiter - used - 1)):
-            w = A(precondition(V[j]))
+class _Recycled:
+    """Right-preconditioned GCR on one matrix A (`A`: CSR, `precondition`: r -> M^-1 r) that keeps its directions z
+    and their images c = A z, the c orthonormal, for every later right-hand side (SYM_GMRES): a new b is first
+    projected on the stored directions (no back-substitution), and only what they leave costs new ones. A
+    modified-Newton substep's residual is mostly made of the hard modes the Newton solve's directions span already.
+    On one right-hand side the iterates are GMRES's (the same Krylov space, minimal residual). Up to `capacity`
+    directions (2 vectors each); a solve that fills the store starts a new one from its current iterate (a
+    restart)."""
+
+    def __init__(self, A, precondition, capacity: int):
+        self.A, self.precondition = A, precondition
+        self.norm_A = float(abs(A).sum(axis=1).max())  # |A|_inf, for the backward error
+        self.Z = np.empty((A.shape[0], max(1, capacity)), order="F")
+        self.C = np.empty_like(self.Z)
+        self.k = 0
+
+    def backward(self, x, b) -> float:
+        """The residual's 2-norm at a normwise backward error of SYM_GMRES_BACKWARD at x."""
+        return SYM_GMRES_BACKWARD * (self.norm_A * float(np.abs(x).max()) + float(np.abs(b).max()))
+
+    def solve(self, b, rtol: float, maxiter: int, first=None):
+        """(x, back-substitutions) with |b - A x| <= max(rtol |b|, the backward error bound at x); (None, ...) if
+        maxiter back-substitutions do not reach it. `first`: precondition(b) if the caller has it (it counts as
+        one)."""
+        b = np.asarray(b, float)
+        nb, used = float(np.linalg.norm(b)), 0
+        x, r = np.zeros_like(b), b.copy()
+        if self.k:
+            C, Z = self.C[:, :self.k], self.Z[:, :self.k]
+            a = C.T @ r
+            x += Z @ a
+            r -= C @ a
+        while True:
+            rn = float(np.linalg.norm(r))
+            if not np.isfinite(rn):
+                return None, used
+            if rn <= max(rtol * nb, self.backward(x, b)):
+                r = b - self.A @ x  # the true residual (the recurrence drifts with the store's orthogonality)
+                rn = float(np.linalg.norm(r))
+                if rn <= max(rtol * nb, self.backward(x, b)):
+                    return x, used
+            if used >= maxiter:
+                return None, used
+            z = self.precondition(r) if first is None or used or self.k else first
             used += 1
-            for i in range(j + 1):  # modified Gram-Schmidt
-                H[i, j] = w @ V[i]
-                w = w - H[i, j] * V[i]
-            H[j + 1, j] = np.linalg.norm(w)
-            y = np.linalg.lstsq(H[:j + 2, :j + 1], g[:j + 2], rcond=None)[0]
-            estimate = np.linalg.norm(g[:j + 2] - H[:j + 2, :j + 1] @ y)  # = |b - A x| in exact arithmetic
-            if estimate <= target or H[j + 1, j] == 0 or not np.isfinite(estimate):
-                break
-            V.append(w / H[j + 1, j])
-        x = x + precondition(np.column_stack(V[:len(y)]) @ y)
-        used += 1
-        r = b - A(x)
-
-
-def _backward(norm_A: float, x, b) -> float:
-    """The residual's 2-norm at a normwise backward error of SYM_GMRES_BACKWARD at x, |A|_inf = norm_A (SYM_GMRES)."""
-    return SYM_GMRES_BACKWARD * (norm_A * float(np.abs(x).max()) + float(np.abs(b).max()))
-
-
-def _sym_part_gmres(A, norm_A: float, back, b, x0, rtol: float):
-    """GMRES on A x = b from x0 = back(b) (SYM_GMRES) to rtol |b|, or to SYM_GMRES_BACKWARD at the x it returns
-    (the bound is set from the iterate it starts from, so it is checked again at the end); (x or None, back-
-    substitutions, x0's included), within SYM_GMRES_MAXITER."""
-    x, used = x0, 1
-    while True:
-        x1, more = _gmres(A.__matmul__, back, b, rtol, SYM_GMRES_MAXITER - used + 1, x0=x,
-                          atol=_backward(norm_A, x, b))
-        used += more - 1  # _gmres counts its x0 as one
-        if x1 is None or np.linalg.norm(b - A @ x1) <= max(rtol * np.linalg.norm(b), _backward(norm_A, x1, b)):
-            return x1, used
-        x = x1
+            c = self.A @ z
+            if self.k == self.Z.shape[1]:
+                self.k = 0  # full: a restart from x
+            C, Z = self.C[:, :self.k], self.Z[:, :self.k]
+            for _ in range(2):  # classical Gram-Schmidt twice
+                h = C.T @ c
+                c -= C @ h
+                z -= Z @ h
+            nc = float(np.linalg.norm(c))
+            if not nc > 0:
+                return None, used
+            self.C[:, self.k], self.Z[:, self.k] = c / nc, z / nc
+            a = float(self.C[:, self.k] @ r)
+            x += a * self.Z[:, self.k]
+            r -= a * self.C[:, self.k]
+            self.k += 1
 
 
 def _symmetric(upper):
@@ -470,14 +478,13 @@ class _Pardiso:
         """Back-substitution (phase 33) with the kept factor; None when none is kept. With a single-precision
         factor too (no CG: a substep corrects with a stale tangent anyway, and Anderson mixing absorbs the
         rounding; CG there cost more than the factorisations saved on the needle model). After SYM_GMRES: GMRES on
-        the kept tangent to SYM_GMRES_RESOLVE_RTOL (None if it misses)."""
+        the kept tangent to SYM_GMRES_RESOLVE_RTOL, from the directions the tangent's solves have built (_Recycled;
+        None if it misses)."""
         if self.kept is None:
             return None
         ps, M, single = self.kept
         if self.gmres_tangent is not None:  # the kept factor is the tangent's symmetric part's (SYM_GMRES)
-            (A, norm_A), b = self.gmres_tangent, np.asarray(b, float)
-            back = self._back(ps, M)
-            x, used = _sym_part_gmres(A, norm_A, back, b, back(b), SYM_GMRES_RESOLVE_RTOL)
+            x, used = self.gmres_tangent.solve(b, SYM_GMRES_RESOLVE_RTOL, SYM_GMRES_MAXITER)
             self.gmres_back_substitutions += used
             return x
         if single:
@@ -528,9 +535,9 @@ class _Pardiso:
         return self._solve(-2 if sym else 11, M, b)
 
     def _sym_gmres(self, M, b):
-        """x = M^-1 b (M non-symmetric, CSR) by GMRES preconditioned with the LDL^T of M's symmetric part
-        (SYM_GMRES); None, the factor freed, if it does not reach SYM_GMRES_RTOL in SYM_GMRES_MAXITER
-        back-substitutions. With `keep` the factor and M stay for resolve()."""
+        """x = M^-1 b (M non-symmetric, CSR) by GMRES (GCR, _Recycled) preconditioned with the LDL^T of M's
+        symmetric part (SYM_GMRES); None, the factor freed, if it does not reach SYM_GMRES_RTOL in SYM_GMRES_MAXITER
+        back-substitutions. With `keep` the factor, M and the directions stay for resolve()."""
         import scipy.sparse as sp
         from pypardiso.pardiso_wrapper import PyPardisoError
 
@@ -539,19 +546,20 @@ class _Pardiso:
         S.sort_indices()
         keep, self.keep = self.keep, True
         try:
-            x0 = self._solve(SYM_PART, S, b)
+            first = self._solve(SYM_PART, S, b)
         except PyPardisoError:  # e.g. singular: the LU will say so
             return None
         finally:
             self.keep = keep
+        del S
         ps, F, _ = self.kept
-        norm_A = float(np.abs(M).sum(axis=1).max())
-        x, used = _sym_part_gmres(M, norm_A, self._back(ps, F), b, x0, SYM_GMRES_RTOL)
+        krylov = _Recycled(sp.csr_matrix(M), self._back(ps, F), SYM_GMRES_RECYCLE)  # our own M: the caller may drop it
+        x, used = krylov.solve(b, SYM_GMRES_RTOL, SYM_GMRES_MAXITER, first)
         self.gmres_back_substitutions += used
         if x is None or not keep:
             self.release()
         else:
-            self.gmres_tangent = (sp.csr_matrix(M), norm_A)  # our own object: the caller may drop its values
+            self.gmres_tangent = krylov
         if x is not None:
             self.gmres_solves += 1
         return x
