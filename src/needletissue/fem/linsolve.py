@@ -462,6 +462,12 @@ class _Pardiso:
         self.pattern.clear()
         self.kept = self.gmres_tangent = None
 
+    def _forget(self, mtype):
+        """Free a solver's factor and analysis, and forget the pattern it analysed: it is not used again, or it
+        analyses afresh."""
+        self.solvers[mtype].free_memory(everything=True)
+        self.pattern.pop(mtype, None)
+
     def release(self):
         """Free the kept factor (phase 0), keep the analysis."""
         self.gmres_tangent = None
@@ -519,19 +525,16 @@ class _Pardiso:
                     raise
                 if self.single:  # perhaps only in single precision: the double Cholesky first
                     self.single = False
-                    self.solvers[2].free_memory(everything=True)
-                    self.pattern.pop(2, None)
+                    self._forget(2)
                     return self(A, b, upper=upper)
                 self.definite = False
-                self.solvers[2].free_memory(everything=True)
-                self.pattern.pop(2, None)
+                self._forget(2)
         if not sym and self.sym_gmres and SYM_GMRES and M.shape[0] >= SYM_GMRES_ROWS:
             x = self._sym_gmres(M, b)
             if x is not None:
                 return x
             self.sym_gmres = False  # missed: the LU for this tangent and every later one
-            self.solvers[SYM_PART].free_memory(everything=True)
-            self.pattern.pop(SYM_PART, None)
+            self._forget(SYM_PART)
         return self._solve(-2 if sym else 11, M, b)
 
     def _sym_gmres(self, M, b):
@@ -630,8 +633,7 @@ class _Pardiso:
                 ps.set_phase(13)
         if x is None:  # CG did not converge: this tangent and every later one in double precision
             self.single = False
-            self.pattern.pop(mtype, None)
-            ps.free_memory(everything=True)
+            self._forget(mtype)
             return self._solve(mtype, M, b)
         return x
 
