@@ -444,9 +444,10 @@ class _Pardiso:
         self.pattern = {}  # mtype -> (indptr, indices) of the analysed matrix
         self.analyses = 0
         self.keep = False  # keep the factor after a call, for resolve(), until release()
-        # (PyPardisoSolver, matrix, single precision) whose factor is kept; the matrix is our own object on the
-        # caller's arrays: a caller may drop its tangent's values after the solve (fem.solve._Bodies.solve), and a
-        # double factor's back-substitution still reads them when it refines (LDL^T on perturbed pivots)
+        # (PyPardisoSolver, matrix as Pardiso read it: float32 values for a single factor) whose factor is kept; the
+        # matrix is our own object on the caller's arrays: a caller may drop its tangent's values after the solve
+        # (fem.solve._Bodies.solve), and a double factor's back-substitution still reads them when it refines (LDL^T
+        # on perturbed pivots)
         self.kept = None
         weakref.finalize(self, _Pardiso._release, self.solvers)
 
@@ -488,19 +489,12 @@ class _Pardiso:
         None if it misses)."""
         if self.kept is None:
             return None
-        ps, M, single = self.kept
+        ps, M = self.kept
         if self.gmres_tangent is not None:  # the kept factor is the tangent's symmetric part's (SYM_GMRES)
             x, used = self.gmres_tangent.solve(b, SYM_GMRES_RESOLVE_RTOL, SYM_GMRES_MAXITER)
             self.gmres_back_substitutions += used
             return x
-        if single:
-            return self._back(ps, M)(np.asarray(b, float))
-        b = ps._check_b(M, b)
-        ps.set_phase(33)
-        try:
-            return ps._call_pardiso(M, b)
-        finally:
-            ps.set_phase(13)
+        return self._back(ps, M)(b)
 
     def __call__(self, A, b, upper: bool = False):
         """upper=True: A is the sorted upper triangle (CSR) of a symmetric matrix, taken as it is."""
@@ -555,7 +549,7 @@ class _Pardiso:
         finally:
             self.keep = keep
         del S
-        ps, F, _ = self.kept
+        ps, F = self.kept
         krylov = _Recycled(sp.csr_matrix(M), self._back(ps, F), SYM_GMRES_RECYCLE)  # our own M: the caller may drop it
         x, used = krylov.solve(b, SYM_GMRES_RTOL, SYM_GMRES_MAXITER, first)
         self.gmres_back_substitutions += used
@@ -582,7 +576,7 @@ class _Pardiso:
                 return x
             finally:
                 if ok and self.keep:
-                    self.kept = (ps, sp.csr_matrix(M), False)
+                    self.kept = (ps, sp.csr_matrix(M))
                 else:
                     ps.free_memory(everything=True)
         known = self.pattern.get(mtype)
@@ -625,7 +619,7 @@ class _Pardiso:
             raise
         finally:
             if ok and self.keep:  # the factor stays for resolve() until release()
-                self.kept = (ps, sp.csr_matrix(F), single)
+                self.kept = (ps, sp.csr_matrix(F))
                 ps.set_phase(13)
             else:
                 ps.set_phase(0)  # release the factor, keep the analysis
@@ -643,10 +637,10 @@ class _Pardiso:
         single = F.dtype == np.float32
 
         def back(r):
+            r = np.asfortranarray(r, np.float32) if single else ps._check_b(F, np.asarray(r, float))
             ps.set_phase(33)
             try:
-                return np.asarray(ps._call_pardiso(F, np.asfortranarray(r, np.float32) if single
-                                                   else np.asarray(r, float)), float)
+                return np.asarray(ps._call_pardiso(F, r), float)
             finally:
                 ps.set_phase(13)
         return back
