@@ -313,16 +313,16 @@ class _Recycled:
         self.C = np.empty_like(self.Z)
         self.k = 0
 
-    def backward(self, x, b) -> float:
-        """The residual's 2-norm at a normwise backward error of SYM_GMRES_BACKWARD at x."""
-        return SYM_GMRES_BACKWARD * (self.norm_A * float(np.abs(x).max()) + float(np.abs(b).max()))
-
     def solve(self, b, rtol: float, maxiter: int, first=None):
         """(x, back-substitutions) with |b - A x| <= max(rtol |b|, the backward error bound at x); (None, ...) if
         maxiter back-substitutions do not reach it. `first`: precondition(b) if the caller has it (it counts as
         one)."""
         b = np.asarray(b, float)
-        nb, used = float(np.linalg.norm(b)), 0
+        used, goal, b_max = 0, rtol * float(np.linalg.norm(b)), float(np.abs(b).max())
+
+        def target(x):  # the residual's 2-norm at rtol |b| or at a normwise backward error of SYM_GMRES_BACKWARD
+            return max(goal, SYM_GMRES_BACKWARD * (self.norm_A * float(np.abs(x).max()) + b_max))
+
         x, r = np.zeros_like(b), b.copy()
         if self.k:
             C, Z = self.C[:, :self.k], self.Z[:, :self.k]
@@ -333,10 +333,9 @@ class _Recycled:
             rn = float(np.linalg.norm(r))
             if not np.isfinite(rn):
                 return None, used
-            if rn <= max(rtol * nb, self.backward(x, b)):
+            if rn <= target(x):
                 r = b - self.A @ x  # the true residual (the recurrence drifts with the store's orthogonality)
-                rn = float(np.linalg.norm(r))
-                if rn <= max(rtol * nb, self.backward(x, b)):
+                if float(np.linalg.norm(r)) <= target(x):
                     return x, used
             if used >= maxiter:
                 return None, used
