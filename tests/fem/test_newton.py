@@ -7,6 +7,7 @@ import pytest
 from felupe.tools._newton import fun_items, jac_items, update
 
 from needletissue.fem import FEModel, Fixed, SurfaceForce, TaggedMesh, linsolve, solve
+from needletissue.errors import InputError
 from needletissue.materials import TISSUE_BULK_RATIO, tissue_bulk
 
 pardiso = pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
@@ -237,3 +238,21 @@ def test_predictor_with_nearly_incompressible_tissue():
     assert out[True][-1].newton_iterations <= out[False][-1].newton_iterations
     for a, b in zip(out[True], out[False]):
         np.testing.assert_allclose(a.displacement, b.displacement, rtol=0, atol=1e-8 * np.abs(b.displacement).max())
+
+
+def test_predictor_from_the_second_increment_starts_the_second_from_the_last_state():
+    """predictor=2 (contact runs from rest, whose first increment closes the gaps): the first two increments
+    as without a predictor, bit for bit, the third from the extrapolation, closer to equilibrium than from
+    the last state. Anything but True, False or a whole number >= 1 is an InputError naming the field."""
+    mesh = TaggedMesh.box((10, 10, 40), (3, 3, 9), region="adipose")
+    out = {}
+    for predictor in (False, 2):
+        model = FEModel(mesh, {"adipose": "adipose"}, order=2, formulation="mixed")
+        out[predictor] = solve(model, [Fixed("zmin"), SurfaceForce("zmax", (0.002, 0.0, 0.0))],
+                               [1 / 3, 2 / 3, 1.0], progress=False, results=False, predictor=predictor)[-1]
+    plain, late = out[False].residual_norms, out[2].residual_norms
+    assert late[:2] == plain[:2]
+    assert late[2][0] < 0.5 * plain[2][0]
+    for bad in (0, 1.5, -1, "2", float("nan")):
+        with pytest.raises(InputError, match="predictor"):
+            solve(model, [Fixed("zmin")], [1.0], progress=False, results=False, predictor=bad)

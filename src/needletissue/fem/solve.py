@@ -509,7 +509,7 @@ class _Progress:
 
 def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=(), progress: bool = True,
           initial_step: float | None = None, min_step: float = 1e-3, max_step: float | None = None,
-          tol: float = 1e-8, maxiter: int | None = None, results: bool = True, predictor: bool = True,
+          tol: float = 1e-8, maxiter: int | None = None, results: bool = True, predictor: bool | int = True,
           linesearch: bool | None = None, substeps: int | None = None, log=None,
           start: float = 0.0) -> list[FEResult]:
     """Solve the model quasi-statically, one FEResult per requested load factor.
@@ -533,7 +533,10 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     results      : False skips the stress/stretch evaluation (e.g. in benchmarks).
     predictor    : start each increment from the linear extrapolation of the last converged one
                    (fewer Newton iterations on smooth load paths; off after a cut-back); the mixed
-                   bodies' cell pressure in the first tangent is extrapolated likewise.
+                   bodies' cell pressure in the first tangent is extrapolated likewise. An int n:
+                   from the n-th converged increment on (2 in contact runs from rest: the first
+                   increment closes the gaps to the barrier's working distance, which is not
+                   proportional to the load, so extrapolating it overshoots; docs/contact.md).
     linesearch   : backtracking line search in every Newton iteration (FElupe's LinesearchPlugin:
                    halve the step while det F <= 0 or the residual is non-finite, e.g. a contact
                    item's NaN for a step that passes a surface through another). Default: on when
@@ -636,6 +639,10 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     plugins.insert(0, pressure)
     # the report first: it records an iteration's residual before a plugin may end the increment there
     plugins.insert(0, _Report())
+    predict_from = 1 if isinstance(predictor, bool) else check_number("predictor", predictor, ge=1)
+    if predict_from != int(predict_from):
+        raise InputError("predictor", f"expected True, False or a whole number of increments >= 1, got {predictor!r}")
+    predictor = bool(predictor)
     lam, nsteps, nit, ncut = check_number("start", start, ge=0), 0, 0, 0
     if lams[0] <= lam:
         raise InputError("start", f"must be below the first load factor {lams[0]:g}, got {lam:g}")
@@ -659,7 +666,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 dl = rest / np.ceil(rest / min(step, max_step) - 1e-9)
                 saved = [f.values.copy() for f in field.fields]
                 pressure.p = None
-                if predictor and last_du is not None:
+                if predictor and last_du is not None and nsteps >= predict_from:
                     for f, d in zip(field.fields, last_du):
                         f.values = f.values + (dl / last_dl) * d
                     pressure.p = [p + (dl / last_dl) * d for p, d in zip(last_p, last_dp)]

@@ -227,10 +227,11 @@ def run_needle_model(config: NeedleModelConfig | None = None, out_dir: str | Pat
     with log or nullcontext():
         # the linear predictor with mixed tissue (at K = 10 MPa the displacement formulation's extrapolated
         # start diverges, docs/bench.md) and in contact runs (small increments that extrapolate well and
-        # start with the contact loaded, docs/contact.md)
+        # start with the contact loaded), there from the second converged increment on: the first closes
+        # the gaps to the barrier's working distance, not in proportion to the load (docs/contact.md)
         factors = [f / fmax for f in cfg.forces]
         fe_results = solve(model, bcs, load_factors=factors, solver=cfg.solver, items=extra, progress=cfg.progress,
-                           predictor=cfg.formulation == "mixed" or bool(extra), log=log,
+                           predictor=2 if extra else cfg.formulation == "mixed", log=log,
                            initial_step=CONTACT_FIRST_INCREMENT * factors[0] if extra else None)
     t_solve = time.perf_counter() - t0 - t_mesh
 
