@@ -155,6 +155,19 @@ def test_a_matrix_fits_the_analysed_pattern_or_their_union():
     np.testing.assert_array_equal(sp.csr_matrix((np.ones(len(indices)), indices, indptr), shape=A.shape).toarray(),
                                   union.astype(float))
     np.testing.assert_array_equal(on.toarray(), B.toarray())
+    # the merge's edge cases: rows empty in either pattern, entries in the first and last columns
+    for density in (0.02, 0.05, 0.5):
+        A = sp.random(40, 40, density=density, random_state=rng, format="csr")
+        B = sp.random(40, 40, density=density, random_state=rng, format="lil")
+        B[0, 0], B[39, 39], B[5, 39] = 1.0, 2.0, 3.0
+        B = B.tocsr()
+        for M in (A, B):
+            M.sort_indices()
+        on, (indptr, indices) = linsolve._fit(B, (A.indptr, A.indices))
+        union = (A != 0).toarray() | (B != 0).toarray()
+        np.testing.assert_array_equal(
+            sp.csr_matrix((np.ones(len(indices)), indices, indptr), shape=A.shape).toarray(), union.astype(float))
+        np.testing.assert_array_equal(on.toarray(), B.toarray())
 
 
 @pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")

@@ -653,26 +653,20 @@ def _fit(M, pattern):
     """(M on an analysed pattern, that pattern): M itself if its pattern is `pattern` (indptr, indices); M with
     explicit zeros where it has no entry if its entries are a subset of it; else M on the union of both patterns,
     and that union (to be analysed). Frictional contact changes the tangent's pattern at every iteration (pairs
-    come and go): the analysis of a superset serves them all. One key search for the three cases (the subset test
-    and the union were two passes each: 40-130 ms per call on the contact models, docs/contact.md)."""
+    come and go): the analysis of a superset serves them all. One merge pass of the two sorted patterns for the
+    three cases (a key search took 0.3 s per call on the one-needle contact model, docs/bench.md)."""
     import scipy.sparse as sp
+
+    from needletissue.fem._csr_merge import positions, union
 
     indptr, indices = pattern
     if np.array_equal(indptr, M.indptr) and np.array_equal(indices, M.indices):
         return M, pattern
-    n = M.shape[1]
-    known, mine = _keys(indptr, indices, n), _keys(M.indptr, M.indices, n)
-    at = np.minimum(np.searchsorted(known, mine), len(known) - 1)
-    outside = known[at] != mine
-    if outside.any():
-        extra = mine[outside]
-        # insert into the sorted keys: np.union1d took 9-11 s CPU on 4.8 M keys (numpy 2.4), this 0.1 s
-        known = np.insert(known, np.searchsorted(known, extra), extra)
-        indptr = np.r_[0, np.cumsum(np.bincount(known // n, minlength=M.shape[0]))]
-        indices = (known % n).astype(M.indices.dtype)
-        pattern = (indptr, indices)
-        at = np.searchsorted(known, mine)
-    data = np.zeros(len(known))
+    at = np.empty(M.nnz, np.int64)
+    if not positions(indptr, indices, M.indptr, M.indices, at):
+        indptr, indices = pattern = union(indptr, indices, M.indptr, M.indices)
+        positions(indptr, indices, M.indptr, M.indices, at)
+    data = np.zeros(len(indices))
     data[at] = M.data
     return sp.csr_matrix((data, indices, indptr), shape=M.shape), pattern
 
