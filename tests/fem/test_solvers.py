@@ -560,6 +560,26 @@ def test_recycled_gcr_is_minimal_residual_and_reuses_its_directions():
 
 
 @pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
+def test_a_bonded_solve_does_not_load_numba():
+    """_fit's merge kernels (Numba: ~58 MB and 0.2 s) load only for a tangent whose pattern differs from the
+    analysed one, which frictional contact has and a bonded run never: checked in a fresh interpreter."""
+    import subprocess
+    import sys
+
+    code = """
+import sys
+from needletissue.fem import FEModel, Fixed, SurfaceForce, TaggedMesh, solve
+mesh = TaggedMesh.box((4, 4, 8), (2, 2, 4), region="adipose")
+model = FEModel(mesh, {"adipose": "adipose"}, order=2, formulation="mixed")
+r = solve(model, [Fixed("zmin"), SurfaceForce("zmax", (0.002, 0.0, 0.0))], [0.5, 1.0], progress=False,
+          results=False, solver="pardiso")
+assert r[-1].newton_iterations >= 2  # more than one tangent: _fit ran
+print("numba" in sys.modules)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split()[-1] == "False"
+
+@pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
 def test_nonsymmetric_tangents_by_gmres_on_their_symmetric_parts_factor(monkeypatch):
     """linsolve.SYM_GMRES: from SYM_GMRES_ROWS rows a non-symmetric (friction) tangent is solved by GMRES
     preconditioned with the LDL^T of its symmetric part, to SYM_GMRES_RTOL, as the LU solves it; a substep's

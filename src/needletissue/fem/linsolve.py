@@ -655,13 +655,14 @@ def _fit(M, pattern):
     and that union (to be analysed). Frictional contact changes the tangent's pattern at every iteration (pairs
     come and go): the analysis of a superset serves them all. One merge pass of the two sorted patterns for the
     three cases (a key search took 0.3 s per call on the one-needle contact model, docs/bench.md)."""
-    import scipy.sparse as sp
-
-    from needletissue.fem._csr_merge import positions, union
-
     indptr, indices = pattern
     if np.array_equal(indptr, M.indptr) and np.array_equal(indices, M.indices):
         return M, pattern
+    import scipy.sparse as sp
+
+    # here, not above: Numba costs 58 MB and 0.2 s, and a bonded run's tangents all have the analysed pattern
+    from needletissue.fem._csr_merge import positions, union
+
     at = np.empty(M.nnz, np.int64)
     if not positions(indptr, indices, M.indptr, M.indices, at):
         indptr, indices = pattern = union(indptr, indices, M.indptr, M.indices)

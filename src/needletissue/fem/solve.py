@@ -642,7 +642,6 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     predict_from = 1 if isinstance(predictor, bool) else check_number("predictor", predictor, ge=1)
     if predict_from != int(predict_from):
         raise InputError("predictor", f"expected True, False or a whole number of increments >= 1, got {predictor!r}")
-    predictor = bool(predictor)
     lam, nsteps, nit, ncut = check_number("start", start, ge=0), 0, 0, 0
     if lams[0] <= lam:
         raise InputError("start", f"must be below the first load factor {lams[0]:g}, got {lam:g}")
