@@ -2,8 +2,9 @@
 
     PYTHONPATH=src python benchmarks/pelvis_contact_log.py '{"out": "DIR", "mesh_size": 6, "needle_size": 3, "far_size": 18}'
 
-The argument: PelvisConfig fields as JSON (default: the CLI's defaults, `interfaces="paper"`, 100/200/300 N,
-no figures, no thickness cross-check), and optionally "contact_tol" (the model's CONTACT_TOL for this run) and
+The argument: PelvisConfig fields as JSON (default: the CLI's defaults but `mesher="box"` (the meshes the docs'
+logs were measured on; give "mesher": "smooth" for the CLI's), `interfaces="paper"`, 100/200/300 N, no figures, no
+thickness cross-check), and optionally "contact_tol" (the model's CONTACT_TOL for this run) and
 "substeps" (fem.solve's SUBSTEPS: modified-Newton substeps per iteration, 0 for none). One JSON line per Newton iteration (relative residual, largest nodal
 correction and where, smallest barrier distance per interface, CPU s of the process), one CONVERGED line
 per increment, a SUMMARY at the end. With "out", OUT/solve_log.jsonl is the model's own per-increment log.
@@ -27,7 +28,8 @@ def main():
         pelvis_model.CONTACT_TOL = float(kw.pop("contact_tol"))
     if "substeps" in kw:  # fem.solve's default number of modified-Newton substeps (0: none)
         importlib.import_module("needletissue.fem.solve").SUBSTEPS = int(kw.pop("substeps"))
-    cfg = PelvisConfig(mesher="box", interfaces="paper", forces=[100.0, 200.0, 300.0], figures=False, crosscheck_thickness=False, **kw)
+    cfg = PelvisConfig(**{"mesher": "box", "interfaces": "paper", "forces": [100.0, 200.0, 300.0], "figures": False,
+                          "crosscheck_thickness": False, **kw})
     newton = felupe.newtonraphson
     t0 = time.process_time()
 

@@ -504,3 +504,33 @@ def test_contact_newton_gives_up_on_a_plateau_and_not_on_slow_progress():
     assert _give_up_at(slow) is None
     assert _give_up_at([1.0 * 0.97 ** k for k in range(40)]) is None  # 3 % per iteration is progress
     assert _give_up_at([1.0 * 0.995 ** k for k in range(40)]) == 6  # 0.5 % is not
+
+
+def test_collision_free_fraction_stops_short_of_the_other_surface():
+    """CollisionFreeStep.step_fraction (Newton's steps and fem.solve's predictor in contact runs): a step that
+    would push the block through the plate is shortened to `fraction` of the largest collision-free part of it,
+    which the CCD then admits while the whole step it does not; a step away from the plate is taken whole."""
+    import ipctk
+
+    from needletissue.fem.contact.item import CollisionFreeStep
+
+    m = _block_on_plane(5.0, MU)
+    item = m.contact
+    X = m.field.region.mesh.points
+    u = np.zeros_like(X)
+    du = np.zeros_like(X)
+    block = np.flatnonzero(X[:, 2] > 1e-9)
+    block = np.union1d(block, item.surface.vertices[item.surface.side_b > 0])  # and its split interface copies
+    du[block, 2] = -0.3  # three dhat down: through the plate
+
+    step = CollisionFreeStep([item])
+    f = step.step_fraction(u, du)
+    assert 0 < f < step.fraction
+    V0 = item.positions(u[item.surface.vertices])
+    through = item.positions((u + du)[item.surface.vertices])
+    short = item.positions((u + f * du)[item.surface.vertices])
+    assert not ipctk.is_step_collision_free(item.cmesh, V0, through, narrow_phase_ccd=item.ccd)
+    assert ipctk.is_step_collision_free(item.cmesh, V0, short, narrow_phase_ccd=item.ccd)
+    # the block's face moved down by f * 0.3 mm, less than the virtual gap it started with
+    assert f * 0.3 < item.settings.gap
+    assert step.step_fraction(u, -du) == 1.0

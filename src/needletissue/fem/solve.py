@@ -536,7 +536,9 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                    bodies' cell pressure in the first tangent is extrapolated likewise. An int n:
                    from the n-th converged increment on (2 in contact runs from rest: the first
                    increment closes the gaps to the barrier's working distance, which is not
-                   proportional to the load, so extrapolating it overshoots; docs/contact.md).
+                   proportional to the load, so extrapolating it overshoots; docs/contact.md). With
+                   contact items the extrapolation goes as far as a Newton step may
+                   (CollisionFreeStep: 0.9 of its collision-free part), not all or nothing.
     linesearch   : backtracking line search in every Newton iteration (FElupe's LinesearchPlugin:
                    halve the step while det F <= 0 or the residual is non-finite, e.g. a contact
                    item's NaN for a step that passes a surface through another). Default: on when
@@ -613,6 +615,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     newton = {"items": all_items} if bonded is None else {"fun": bonded.fun, "jac": bonded.jac, "solve": bonded.solve}
     # contact items bound every step by CCD (a substep through a surface gives a NaN residual and ends them)
     bounded = [i for i in items if hasattr(i, "step_bound")]
+    collision_free = None  # contact runs' CollisionFreeStep: also shortens the predictor
     if substeps is None:
         substeps = SUBSTEPS if bounded or not (items or searching) else 0
     substeps = int(check_number("substeps", substeps, ge=0))
@@ -630,7 +633,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
         if bounded:  # contact: a CCD-bounded step first; a slope line search once Newton stalls
             from needletissue.fem.contact.item import CollisionFreeStep, StallLinesearch
 
-            plugins[:0] = [CollisionFreeStep(bounded), StallLinesearch(bounded)]
+            collision_free = CollisionFreeStep(bounded)
+            plugins[:0] = [collision_free, StallLinesearch(bounded)]
         else:
             plugins.insert(0, fem.LinesearchPlugin(admissible=True, residual=False, max_halvings=10,
                                                    criteria=[lambda trial: trial.finite]))
@@ -666,9 +670,12 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                 saved = [f.values.copy() for f in field.fields]
                 pressure.p = None
                 if predictor and last_du is not None and nsteps >= predict_from:
+                    scale = dl / last_dl
+                    if collision_free is not None:  # contact: as far along it as no surface passes another
+                        scale *= collision_free.step_fraction(saved[0], scale * last_du[0])
                     for f, d in zip(field.fields, last_du):
-                        f.values = f.values + (dl / last_dl) * d
-                    pressure.p = [p + (dl / last_dl) * d for p, d in zip(last_p, last_dp)]
+                        f.values = f.values + scale * d
+                    pressure.p = [p + scale * d for p, d in zip(last_p, last_dp)]
                     if not all(i.admissible() for i in items if hasattr(i, "admissible")):
                         for f, v in zip(field.fields, saved):  # e.g. contact surfaces passed through
                             f.values = v.copy()

@@ -255,15 +255,20 @@ class CollisionFreeStep(Plugin):
         self.fraction = fraction
         self.alphas: list[float] = []
 
-    def after_linear_solve(self, context, st):
+    def step_fraction(self, u, du) -> float:
+        """The part of the step u -> u + du (displacements of all points, (n, 3), mm) to take: 1, or `fraction` of
+        the largest that passes no contact surface through another (fem.solve's predictor takes it too)."""
         if not self.items:
-            return
-        u = st.x[0].values
-        du = np.asarray(st.dx)[:u.size].reshape(-1, 3)
+            return 1.0
         alpha = min(i.step_bound(u[i.surface.vertices], du[i.surface.vertices]) for i in self.items)
-        if alpha < 1:
-            self.alphas.append(alpha)
-            st.dx = self.fraction * alpha * st.dx
+        return 1.0 if alpha >= 1 else self.fraction * alpha
+
+    def after_linear_solve(self, context, st):
+        u = st.x[0].values
+        f = self.step_fraction(u, np.asarray(st.dx)[:u.size].reshape(-1, 3))
+        if f < 1:
+            self.alphas.append(f / self.fraction)
+            st.dx = f * st.dx
 
 
 class StallLinesearch(LinesearchPlugin):
