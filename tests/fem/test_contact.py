@@ -526,6 +526,8 @@ def test_collision_free_fraction_stops_short_of_the_other_surface():
     step = CollisionFreeStep([item])
     f = step.step_fraction(u, du)
     assert 0 < f < step.fraction
+    v = item.surface.vertices  # `fraction` of the collision-free part: a margin below what CCD allows
+    assert f == pytest.approx(step.fraction * item.step_bound(u[v], du[v]))
     V0 = item.positions(u[item.surface.vertices])
     through = item.positions((u + du)[item.surface.vertices])
     short = item.positions((u + f * du)[item.surface.vertices])
