@@ -528,9 +528,7 @@ def test_collision_free_fraction_stops_short_of_the_other_surface():
     assert 0 < f < step.fraction
     v = item.surface.vertices  # `fraction` of the collision-free part: a margin below what CCD allows
     assert f == pytest.approx(step.fraction * item.step_bound(u[v], du[v]))
-    V0 = item.positions(u[item.surface.vertices])
-    through = item.positions((u + du)[item.surface.vertices])
-    short = item.positions((u + f * du)[item.surface.vertices])
+    V0, through, short = (item.positions((u + s * du)[v]) for s in (0.0, 1.0, f))
     assert not ipctk.is_step_collision_free(item.cmesh, V0, through, narrow_phase_ccd=item.ccd)
     assert ipctk.is_step_collision_free(item.cmesh, V0, short, narrow_phase_ccd=item.ccd)
     # the block's face moved down by f * 0.3 mm, less than the virtual gap it started with

@@ -579,6 +579,7 @@ print("numba" in sys.modules)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split()[-1] == "False"
 
+
 @pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
 def test_nonsymmetric_tangents_by_gmres_on_their_symmetric_parts_factor(monkeypatch):
     """linsolve.SYM_GMRES: from SYM_GMRES_ROWS rows a non-symmetric (friction) tangent is solved by GMRES
