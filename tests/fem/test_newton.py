@@ -138,6 +138,57 @@ def test_bodies_tangent_is_felupes_free_block():
     np.testing.assert_allclose(du, ref, rtol=0, atol=1e-9 * np.abs(ref).max())
 
 
+def test_bodies_with_contact_items_give_felupes_whole_tangent_and_solve():
+    """Contact runs assemble through _Bodies too (`extra`: the contact items): in a deformed state where the
+    split interface's barrier and its friction are active (a non-symmetric tangent), the residual, the whole
+    free-free block (the bodies' upper triangle mirrored, the item's matrix added) and K10 give FElupe's
+    jac_items partition, and the partitioned solve with a prescribed displacement FElupe's increment."""
+    import felupe as fem
+    import scipy.sparse as sp
+
+    from needletissue.fem.contact import ContactSettings, ContactSurface, FrictionalContact
+    from needletissue.fem.contact.mesh import split_interfaces
+    from needletissue.fem.model import PrescribedDisplacement
+    from needletissue.fem.solve import _Bodies, _Loads
+
+    mesh = TaggedMesh.box((6, 6, 8), (3, 3, 4), layers={"muscle": (0, 4), "adipose": (4, 8)})
+    mesh, split = split_interfaces(mesh, ["muscle-adipose"])
+    model = FEModel(mesh, {"muscle": "muscle", "adipose": "adipose"}, order=2)
+    settings = ContactSettings(dhat=0.1, youngs_modulus=0.03, eps_v=1e-3)
+    surface = ContactSurface.build(model.mesh.points, split, {"muscle-adipose": 0.3}, gap=settings.gap)
+    item = FrictionalContact(model.field, surface, settings)
+    loads = _Loads(model, [Fixed("zmin"), PrescribedDisplacement("zmax", (0.05, None, -0.02))])
+    x = model.field
+    X = model.mesh.points
+    # the adipose slides 0.02 mm in x over the muscle and is pressed 0.01 mm into the barrier
+    x[0].values[:] = np.where(X[:, 2:] > 4 - 1e-9, [0.02, 0.0, -0.01], 0.0) * (X[:, 2:] > 4 - 1e-9)
+    x[0].values[:] += np.random.default_rng(5).normal(size=X.shape) * 1e-4
+    bodies = list(model.bodies.values())
+    items = [*bodies, item]
+    ours = _Bodies(items, bodies, loads.dof1, loads.dof0, model.ndof, extra=[item])
+    f = ours.fun(x)
+    assert item.results.info["active_contacts"] > 0
+    ref = fun_items(items, x)
+    np.testing.assert_allclose(f, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    A = ours.jac(x)
+    K = jac_items(items, x).tocsr()
+    K11 = K[loads.dof1][:, loads.dof1]
+    assert abs(K11 - K11.T).max() > 1e-6 * abs(K11).max()  # friction: not symmetric
+    ext0 = loads.apply(model, 1.0)
+    seen = {}
+
+    def solver(M, b, upper=False):
+        assert not upper  # the whole matrix
+        seen["K11"] = M.copy()
+        return sp.linalg.spsolve(M.tocsc(), b)
+
+    du = ours.solve(A, -f, x, loads.dof1, loads.dof0, ext0, solver)
+    np.testing.assert_allclose(seen["K11"].toarray(), K11.toarray(), rtol=0, atol=1e-12 * abs(K11).max())
+    system = fem.solve.partition(x, K, loads.dof1, loads.dof0, f)
+    expected = fem.solve.solve(*system, ext0, solver=lambda M, b: sp.linalg.spsolve(M.tocsc(), b))
+    np.testing.assert_allclose(du, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+
+
 def test_threaded_bodies_give_the_same_bits_and_stop_on_a_failing_body():
     """The bodies assembled on three threads give the residual and tangent of one thread bit for bit (the
     sums keep the bodies' order), FElupe's pattern cache is left as found, the threads end with close(); a

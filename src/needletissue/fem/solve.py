@@ -115,6 +115,17 @@ def _substep_plugin(fem, linear, dof1, nmax: int, tol: float):
     return _Substeps()
 
 
+def _items_plugin(fem, bodies):
+    """A FElupe plugin: the bodies as the Newton context's items when fem.solve assembles them itself (_Bodies), for
+    the plugins that read them (the line search's det F test); FElupe's own assembly does not see them."""
+
+    class _Items(fem.Plugin):
+        def before_newton(self, context, st):
+            context.items = bodies
+
+    return _Items()
+
+
 def _pressure_plugin(fem, mixed):
     """A FElupe plugin: the first tangent of a predicted increment with the mixed bodies' cell pressure
     `p` (set per increment; None: FElupe's own). FElupe takes p = K (Jbar - 1) with Jbar the volume
@@ -161,7 +172,7 @@ _PATTERNS_LOCK = threading.Lock()  # FElupe's sparsity-pattern cache (module-lev
 
 class _Bodies:
     """Residual, tangent and linear solve for FElupe's newtonraphson when the items are the model's
-    bodies and point loads only (no contact): each body's element matrices go straight into the upper
+    bodies, point loads and contact items (`extra`): each body's element matrices go straight into the upper
     triangle of the free-free block K11 (and into K10), whose CSR patterns are built once, through one
     int32 index per value of each element matrix's upper triangle into the body's own slots of K11,
     instead of FElupe's per-body CSR matrix (an int64 position per value, ~1.5 GB at paper scale), the
@@ -169,10 +180,13 @@ class _Bodies:
     iteration (docs/bench.md). The bodies' hyperelastic laws have symmetric tangents (second derivatives
     of an energy), so the element matrices' lower halves are not summed. Bodies are assembled on
     `threads` threads, at most one body's element matrices alive per thread (FElupe's copy in its
-    results is dropped)."""
+    results is dropped).
 
-    def __init__(self, items, bodies, dof1, dof0, ndof, threads: int = 1):
-        self.items, self.bodies = items, bodies
+    `extra`: items among `items` whose matrices are not symmetric bodies' (frictional contact): their global
+    matrices are added to the whole K11 (upper triangle mirrored) and K10 at the solve."""
+
+    def __init__(self, items, bodies, dof1, dof0, ndof, threads: int = 1, extra=()):
+        self.items, self.bodies, self.extra = items, bodies, list(extra)
         self.dof1, self.dof0, self.n = dof1, dof0, ndof
         self.slots = None    # per body: (the K11 upper-data slots it touches (0: none), each value's index among them)
         self.slots10 = None  # per body: (the values that go into K10, their slots there)
@@ -293,7 +307,8 @@ class _Bodies:
         return upper
 
     def jac(self, x):
-        """At the state of the last fun(x), as FElupe's own assembly: (upper triangle of K11, K10)."""
+        """At the state of the last fun(x), as FElupe's own assembly: (upper triangle of K11, K10), and the
+        `extra` items' global matrix summed when there are any."""
         import scipy.sparse as sp
 
         if self.slots is None:
@@ -316,7 +331,16 @@ class _Bodies:
             del d, d10
         upper = sp.csr_matrix((data[1:], self.indices, self.indptr), shape=(len(self.dof1),) * 2)
         upper.has_sorted_indices = True
-        return upper, sp.csr_matrix((data10, self.k10.indices, self.k10.indptr), shape=self.k10.shape)
+        k10 = sp.csr_matrix((data10, self.k10.indices, self.k10.indptr), shape=self.k10.shape)
+        if not self.extra:
+            return upper, k10
+        extra = None
+        for item in self.extra:  # at the state of their last residual, as FElupe's jac_items
+            K = item.assemble.matrix()
+            if item.assemble.multiplier is not None:
+                K = K * item.assemble.multiplier
+            extra = K if extra is None else extra + K
+        return upper, k10, extra.tocsr()
 
     def _build(self):
         """The patterns of K11's upper triangle and of K10 from the bodies' sparsity patterns (FElupe's,
@@ -372,12 +396,21 @@ class _Bodies:
             del p, v10
 
     def solve(self, A, b, x, dof1, dof0, ext0, solver):
-        """FElupe's partitioned solve, K11 du1 = b1 - K10 du0, with A = (upper triangle of K11, K10)."""
-        upper, k10 = A
+        """FElupe's partitioned solve, K11 du1 = b1 - K10 du0, with A = (upper triangle of K11, K10) or, with
+        `extra` items, (upper triangle of the bodies' K11, their K10, the extra items' global matrix)."""
+        import scipy.sparse as sp
+
+        upper, k10, *extra = A
+        if extra:  # the whole (non-symmetric) K11: the bodies' mirrored, the items' added
+            rows = extra[0][dof1]
+            whole = upper + sp.triu(upper, 1, format="csr").T + rows[:, dof1]
+            upper.data = np.empty(0)
+            upper, k10 = whole.tocsr(), k10 + rows[:, dof0]
+            del rows, whole
         du0 = ext0 - np.concatenate([f.values.ravel() for f in x.fields])[dof0]
         rhs = b[dof1] - k10 @ du0 if np.any(du0) else b[dof1]
         du = np.empty(self.n)
-        du[dof1] = solver(upper, rhs, upper=True)
+        du[dof1] = solver(upper, rhs, upper=not extra)
         du[dof0] = du0
         # the next iteration assembles a new tangent and the substeps use the kept factor: the values go now, not
         # after the substeps' residuals (a fresh empty array: a slice would keep them); a kept double factor holds
@@ -609,12 +642,15 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
 
     plugins = []
     searching = bool(items) if linesearch is None else bool(linesearch)
-    # the line search's admissibility test needs FElupe's items (det F per body)
-    bonded = None if items or searching else _Bodies(all_items, bodies, loads.dof1, loads.dof0, model.ndof,
-                                                     threads=assembly_threads())
-    newton = {"items": all_items} if bonded is None else {"fun": bonded.fun, "jac": bonded.jac, "solve": bonded.solve}
     # contact items bound every step by CCD (a substep through a surface gives a NaN residual and ends them)
     bounded = [i for i in items if hasattr(i, "step_bound")]
+    # the direct assembly (_Bodies) for bonded runs and contact runs; FElupe's for other items, and for the plain
+    # line search (its admissibility test takes det F per item; the contact runs' takes it on the whole field)
+    direct = len(bounded) == len(items) and (not searching or bool(bounded))
+    assembly = _Bodies(all_items, bodies, loads.dof1, loads.dof0, model.ndof, threads=assembly_threads(),
+                       extra=bounded) if direct else None
+    newton = ({"items": all_items} if assembly is None
+              else {"fun": assembly.fun, "jac": assembly.jac, "solve": assembly.solve})
     collision_free = None  # contact runs' CollisionFreeStep: also shortens the predictor
     if substeps is None:
         substeps = SUBSTEPS if bounded or not (items or searching) else 0
@@ -641,6 +677,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     mixed = [b for b in bodies if isinstance(b, fem.SolidBodyNearlyIncompressible)]
     pressure = _pressure_plugin(fem, mixed)
     plugins.insert(0, pressure)
+    if searching and assembly is not None:  # the line search's admissibility test: det F per body
+        plugins.insert(0, _items_plugin(fem, bodies))
     # the report first: it records an iteration's residual before a plugin may end the increment there
     plugins.insert(0, _Report())
     predict_from = 1 if isinstance(predictor, bool) else check_number("predictor", predictor, ge=1)
@@ -661,7 +699,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     emit = _emitter(log, items, t0)
     # contact runs repeat bit for bit (MKL in its reproducible mode on two threads, else one: linsolve.thread_limits)
     with bar if progress else nullcontext(), linsolve.thread_limits(name, reproducible=bool(bounded)), closing(linear), \
-            closing(bonded) if bonded is not None else nullcontext():
+            closing(assembly) if assembly is not None else nullcontext():
         for target in lams:
             while lam < target * (1 - 1e-12):
                 # equal sub-steps no larger than the allowed increment (no tiny remainders)
@@ -692,7 +730,7 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
                         res = fem.newtonraphson(
                             x0=field, dof1=loads.dof1, dof0=loads.dof0, ext0=ext0,
                             solver=linear, tol=tol, maxiter=maxiter, verbose=0, plugins=plugins, **newton)
-                    if bonded is not None and res.success:  # what FElupe does for items
+                    if assembly is not None and res.success:  # what FElupe does for items
                         for item in all_items:
                             item.results.update_statevars()
                     ok = bool(res.success) and np.all(np.isfinite(res.fun))
