@@ -644,8 +644,8 @@ def solve(model: FEModel, bcs, load_factors=(1.0,), solver: str = "auto", items=
     searching = bool(items) if linesearch is None else bool(linesearch)
     # contact items bound every step by CCD (a substep through a surface gives a NaN residual and ends them)
     bounded = [i for i in items if hasattr(i, "step_bound")]
-    # the direct assembly (_Bodies) for bonded runs and contact runs; FElupe's for other items, and for the plain
-    # line search (its admissibility test takes det F per item; the contact runs' takes it on the whole field)
+    # the direct assembly (_Bodies) for bonded runs and contact runs (their line search's det F test reads the
+    # bodies, _items_plugin); FElupe's for other items and for the plain line search
     direct = len(bounded) == len(items) and (not searching or bool(bounded))
     assembly = _Bodies(all_items, bodies, loads.dof1, loads.dof0, model.ndof, threads=assembly_threads(),
                        extra=bounded) if direct else None
