@@ -157,7 +157,9 @@ def test_bodies_with_contact_items_give_felupes_whole_tangent_and_solve():
     settings = ContactSettings(dhat=0.1, youngs_modulus=0.03, eps_v=1e-3)
     surface = ContactSurface.build(model.mesh.points, split, {"muscle-adipose": 0.3}, gap=settings.gap)
     item = FrictionalContact(model.field, surface, settings)
-    loads = _Loads(model, [Fixed("zmin"), PrescribedDisplacement("zmax", (0.05, None, -0.02))])
+    # xmin held at x = 0 cuts through the interface: the item couples free and prescribed dofs (K10)
+    loads = _Loads(model, [Fixed("zmin"), PrescribedDisplacement("zmax", (0.05, None, -0.02)),
+                           PrescribedDisplacement("xmin", (0.0, None, None))])
     x = model.field
     X = model.mesh.points
     # the adipose slides 0.02 mm in x over the muscle and is pressed 0.01 mm into the barrier
@@ -184,6 +186,7 @@ def test_bodies_with_contact_items_give_felupes_whole_tangent_and_solve():
 
     du = ours.solve(A, -f, x, loads.dof1, loads.dof0, ext0, solver)
     np.testing.assert_allclose(seen["K11"].toarray(), K11.toarray(), rtol=0, atol=1e-12 * abs(K11).max())
+    assert abs(item.assemble.matrix().tocsr()[loads.dof1][:, loads.dof0]).max() > 0
     system = fem.solve.partition(x, K, loads.dof1, loads.dof0, f)
     expected = fem.solve.solve(*system, ext0, solver=lambda M, b: sp.linalg.spsolve(M.tocsc(), b))
     np.testing.assert_allclose(du, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
