@@ -403,10 +403,9 @@ class _Bodies:
         upper, k10, *extra = A
         if extra:  # the whole (non-symmetric) K11: the bodies' mirrored, the items' added
             rows = extra[0][dof1]
-            whole = upper + sp.triu(upper, 1, format="csr").T + rows[:, dof1]
+            whole = upper + sp.triu(upper, 1, format="csr").T + rows[:, dof1]  # CSR
             upper.data = np.empty(0)
-            upper, k10 = whole.tocsr(), k10 + rows[:, dof0]
-            del rows, whole
+            upper, k10 = whole, k10 + rows[:, dof0]
         du0 = ext0 - np.concatenate([f.values.ravel() for f in x.fields])[dof0]
         rhs = b[dof1] - k10 @ du0 if np.any(du0) else b[dof1]
         du = np.empty(self.n)
