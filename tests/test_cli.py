@@ -1,5 +1,6 @@
 """The root command: --version and --help work, for the root and for every materials command."""
 
+import json
 import os
 import signal
 import subprocess
@@ -125,3 +126,34 @@ def test_command_summaries_are_one_line_each():
     panel = [line for line in r.stdout.split("Commands")[1].splitlines() if line.startswith("\u2502")]
     names = [line.split()[1] for line in panel]
     assert r.returncode == 0 and len(panel) >= 10 and all(n.isidentifier() for n in names), panel
+
+
+WARNED = "hip_cortical: von Mises 508 MPa exceeds its strength 133 MPa (utilisation 3.82): the elastic model is not valid there"
+
+
+class _Result:
+    """What run_pelvis_model / run_needle_model return, as far as the commands' JSON output reads it."""
+
+    def __init__(self, strength):
+        self.results = [type("R", (), {"force_N": f, "strength": s})() for f, s in strength]
+        self._d = {"results": [{"force_N": f, "strength": s} for f, s in strength]}
+
+    def to_dict(self):
+        return self._d
+
+
+@pytest.mark.parametrize("command, module, run", [
+    (["fe", "pelvis"], "needletissue.models.pelvis", "run_pelvis_model"),
+    (["fe", "needle"], "needletissue.models.needle", "run_needle_model"),
+])
+def test_fe_commands_warn_on_stderr_where_a_stress_passes_its_strength(monkeypatch, command, module, run):
+    """A stress past its material's strength is a warning line on stderr per force (the JSON on stdout keeps it
+    too, and stays JSON); a force within every strength warns of nothing."""
+    import importlib
+
+    strength = [(100.0, {"validity_warnings": []}), (300.0, {"validity_warnings": [WARNED]})]
+    monkeypatch.setattr(importlib.import_module(module), run, lambda *a, **k: _Result(strength))
+    res = runner.invoke(app, [*command, "--json"])
+    assert res.exit_code == 0, res.output
+    assert res.stderr.splitlines() == [f"warning: 300 N: {WARNED}"]
+    assert json.loads(res.stdout)["results"][1]["strength"]["validity_warnings"] == [WARNED]

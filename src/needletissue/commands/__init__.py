@@ -20,3 +20,16 @@ def numbers(option: str, text: str | None, n: int = 3, unit: str = "") -> tuple[
     if len(v) != n:
         raise InputError(option, f"expected {n} comma-separated numbers{f' ({unit})' if unit else ''}, got {text!r}")
     return v
+
+
+def warn_validity(results) -> None:
+    """Each result's validity warnings (a stress past its material's strength, models.strength) on stderr, one
+    line each, whether the results go to stdout as JSON (which keeps them, `strength.validity_warnings`) or as a
+    table."""
+    import typer
+
+    for r in results:
+        st = (r.get("strength") if isinstance(r, dict) else r.strength) or {}
+        force = r["force_N"] if isinstance(r, dict) else r.force_N
+        for w in st.get("validity_warnings", []):
+            typer.echo(f"warning: {force:g} N: {w}", err=True)

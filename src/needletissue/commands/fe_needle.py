@@ -8,7 +8,7 @@ from typing import List, Optional
 
 import typer
 
-from needletissue.commands import numbers
+from needletissue.commands import numbers, warn_validity
 from needletissue.errors import FORCE_RANGE_HELP
 
 
@@ -111,6 +111,7 @@ def register(app: typer.Typer, groups) -> None:
 
             check_output_dir(out, "--out")
         result = run_needle_model(cfg, out, **hooks)
+        warn_validity(result.results)
         if json_out:
             from needletissue.runinfo import to_jsonable
 
@@ -169,8 +170,6 @@ def _table(result, out) -> None:
         if st:
             c.print(f"{r.force_N:g} N: needle yield utilisation {st['needle_yield_utilisation']:.2f}, "
                     f"bone strength utilisation {st['bone_strength_utilisation']:.2f} (max von Mises / strength)")
-        for w in st.get("validity_warnings", []):
-            c.print(f"[yellow]warning[/yellow] {r.force_N:g} N: {w}")
     for row in result.extra.get("contact", {}).get("per_force", []):
         gaps = ", ".join(f"{k} {v:.3f}" for k, v in row["max_gap_opening_mm"].items())
         c.print(f"{row['force_N']:g} N contact: largest gap opening mm: {gaps}; "

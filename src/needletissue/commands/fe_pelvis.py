@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from needletissue.commands import numbers
+from needletissue.commands import numbers, warn_validity
 from needletissue.errors import FORCE_RANGE_HELP
 
 
@@ -120,6 +120,7 @@ def register(app, groups) -> None:
         config = PelvisConfig(**kw, out=str(out) if out else None, progress=not json_out)
         res = run_pelvis_model(config)
         d = res.to_dict()
+        warn_validity(d["results"])
         if json_out:
             keep = ("mesh", "wall_time_s", "results", "ranking", "thickness", "comparison", "contact")
             print(json.dumps({k: d[k] for k in keep if d.get(k) is not None}, indent=2))
@@ -139,6 +140,11 @@ def register(app, groups) -> None:
         con.print(t)
         last = d["results"][-1]["max_deformation_mm"]
         con.print("ranking (largest first): " + " > ".join(f"{n} {last[n]:.2f} mm" for n in d["ranking"]))
+        for r in d["results"]:
+            st = r.get("strength") or {}
+            if st:
+                con.print(f"{r['force_N']:g} N: needle yield utilisation {st['needle_yield_utilisation']:.2f}, bone "
+                          f"strength utilisation {st['bone_strength_utilisation']:.2f} (max von Mises / strength)")
         if d.get("contact"):
             _print_contact(con, d["contact"])
         for th in d["thickness"]:
