@@ -9,6 +9,7 @@ without the 3D render. Needs ../shared/data. Run with `nice`: measured 26.2 min 
 2-core machine (1527 s CPU), 8.2 GiB peak RSS, 1,345,969 tets, 752,010 dofs (docs/pelvis_model.md).
 
     PYTHONPATH=src nice python benchmarks/paper_scale_pelvis.py --out /tmp/pelvis_paperscale [--force 300]
+        [--mesher smooth] [--interfaces paper]
 """
 
 from __future__ import annotations
@@ -28,10 +29,14 @@ if __name__ == "__main__":
     ap.add_argument("--mesh-size", type=float, default=2.45, help="tissue element size, mm")
     ap.add_argument("--needle-size", type=float, default=1.0, help="needle element size, mm")
     ap.add_argument("--solver", default="auto", choices=SOLVERS, help="linear solver (fem.linsolve)")
+    ap.add_argument("--mesher", default="box", choices=("box", "smooth"),
+                    help="box (the paper's element count) or smooth (the CT reconstruction; ~0.95 M tets at most)")
+    ap.add_argument("--interfaces", default="bonded", choices=("bonded", "paper"),
+                    help="bonded, or the paper's frictional contacts (docs/contact.md)")
     a = ap.parse_args()
-    cfg = PelvisConfig(mesher="box", forces=a.force or [300.0], order=1, needle_size=a.needle_size, mesh_size=a.mesh_size,
-                       far_size=a.mesh_size, out=a.out, figures=False,
-                       solver=a.solver)
+    cfg = PelvisConfig(mesher=a.mesher, forces=a.force or [300.0], order=1, needle_size=a.needle_size,
+                       mesh_size=a.mesh_size, far_size=a.mesh_size, out=a.out, figures=False, solver=a.solver,
+                       interfaces=a.interfaces)
     t = time.perf_counter()
     res = run_pelvis_model(cfg)
     wall = time.perf_counter() - t
