@@ -128,7 +128,8 @@ def test_command_summaries_are_one_line_each():
     assert r.returncode == 0 and len(panel) >= 10 and all(n.isidentifier() for n in names), panel
 
 
-WARNED = "hip_cortical: von Mises 508 MPa exceeds its strength 133 MPa (utilisation 3.82): the elastic model is not valid there"
+WARNED = ("hip_cortical: von Mises 508 MPa exceeds its strength 133 MPa (utilisation 3.82): the elastic model is not "
+          "valid there")
 
 
 class _Result:
