@@ -22,6 +22,12 @@ def numbers(option: str, text: str | None, n: int = 3, unit: str = "") -> tuple[
     return v
 
 
+def utilisation_line(force_N: float, strength: dict) -> str:
+    """One result's needle and bone utilisation (models.strength), for the fe commands' tables."""
+    return (f"{force_N:g} N: needle yield utilisation {strength['needle_yield_utilisation']:.2f}, bone strength "
+            f"utilisation {strength['bone_strength_utilisation']:.2f} (max von Mises / strength)")
+
+
 def warn_validity(results) -> None:
     """Each result's validity warnings (a stress past its material's strength, models.strength) on stderr, one
     line each, whether the results go to stdout as JSON (which keeps them, `strength.validity_warnings`) or as a

@@ -8,7 +8,7 @@ from typing import List, Optional
 
 import typer
 
-from needletissue.commands import numbers, warn_validity
+from needletissue.commands import numbers, utilisation_line, warn_validity
 from needletissue.errors import FORCE_RANGE_HELP
 
 
@@ -168,8 +168,7 @@ def _table(result, out) -> None:
     for r in result.results:
         st = r.strength
         if st:
-            c.print(f"{r.force_N:g} N: needle yield utilisation {st['needle_yield_utilisation']:.2f}, "
-                    f"bone strength utilisation {st['bone_strength_utilisation']:.2f} (max von Mises / strength)")
+            c.print(utilisation_line(r.force_N, st))
     for row in result.extra.get("contact", {}).get("per_force", []):
         gaps = ", ".join(f"{k} {v:.3f}" for k, v in row["max_gap_opening_mm"].items())
         c.print(f"{row['force_N']:g} N contact: largest gap opening mm: {gaps}; "

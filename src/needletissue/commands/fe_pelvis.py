@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from needletissue.commands import numbers, warn_validity
+from needletissue.commands import numbers, utilisation_line, warn_validity
 from needletissue.errors import FORCE_RANGE_HELP
 
 
@@ -141,10 +141,8 @@ def register(app, groups) -> None:
         last = d["results"][-1]["max_deformation_mm"]
         con.print("ranking (largest first): " + " > ".join(f"{n} {last[n]:.2f} mm" for n in d["ranking"]))
         for r in d["results"]:
-            st = r.get("strength") or {}
-            if st:
-                con.print(f"{r['force_N']:g} N: needle yield utilisation {st['needle_yield_utilisation']:.2f}, bone "
-                          f"strength utilisation {st['bone_strength_utilisation']:.2f} (max von Mises / strength)")
+            if r.get("strength"):
+                con.print(utilisation_line(r["force_N"], r["strength"]))
         if d.get("contact"):
             _print_contact(con, d["contact"])
         for th in d["thickness"]:
