@@ -581,12 +581,15 @@ print("numba" in sys.modules)
 
 
 @pytest.mark.skipif(not linsolve.has_pardiso(), reason="pypardiso not installed")
-def test_nonsymmetric_tangents_by_gmres_on_their_symmetric_parts_factor(monkeypatch):
+@pytest.mark.parametrize("factor", [linsolve.SINGLE_LU, linsolve.SYM_PART])
+def test_nonsymmetric_tangents_by_gmres_on_a_cheaper_factor(monkeypatch, factor):
     """linsolve.SYM_GMRES: from SYM_GMRES_ROWS rows a non-symmetric (friction) tangent is solved by GMRES
-    preconditioned with the LDL^T of its symmetric part, to SYM_GMRES_RTOL, as the LU solves it; a substep's
-    resolve() is GMRES on the kept tangent; a tangent whose GMRES misses SYM_GMRES_MAXITER is solved by the LU, and
-    so is every later one; below SYM_GMRES_ROWS rows the LU."""
+    preconditioned with its LU in single precision (or the LDL^T of its symmetric part), to SYM_GMRES_RTOL, as the
+    double LU solves it; a substep's resolve() is GMRES on the kept tangent; a tangent whose GMRES misses
+    SYM_GMRES_MAXITER is solved by the double LU, and so is every later one; below SYM_GMRES_ROWS rows the LU."""
     import scipy.sparse as sp
+
+    monkeypatch.setattr(linsolve, "SYM_GMRES_FACTOR", factor)
 
     S = _clamped_needle_tangent()[1]
     A = _nonsymmetric(S)
@@ -613,13 +616,15 @@ def test_nonsymmetric_tangents_by_gmres_on_their_symmetric_parts_factor(monkeypa
     y = s.resolve(c)  # GMRES (GCR) on A again, to the substeps' tolerance, no factorisation
     assert s.counts["factorisations"] == 1 and s.counts["gmres_back_substitutions"] > counts["gmres_back_substitutions"]
     assert np.linalg.norm(A @ y - c) <= linsolve.SYM_GMRES_RESOLVE_RTOL * np.linalg.norm(c)
+    assert (s._fun.kept[1].dtype == np.float32) == (factor == linsolve.SINGLE_LU)  # the factor GMRES runs on
     s.release()
     assert s.resolve(c) is None
 
     far = (S + 0.3 * abs(S).max() * sp.random(*S.shape, density=1e-2, random_state=5, format="csr")).tocsr()
-    monkeypatch.setattr(linsolve, "SYM_GMRES_MAXITER", 3)  # far from symmetric: 3 back-substitutions do not do
+    # far from symmetric (its symmetric part's factor) or one back-substitution (a float32 factor): GMRES misses
+    monkeypatch.setattr(linsolve, "SYM_GMRES_MAXITER", 3 if factor == linsolve.SYM_PART else 1)
     x = s(far, b)
-    assert s.counts["factorisations"] == 3 and s.counts["gmres_solves"] == 1  # its symmetric part's, then the LU
+    assert s.counts["factorisations"] == 3 and s.counts["gmres_solves"] == 1  # GMRES's factor, then the double LU
     assert np.linalg.norm(far @ x - b) < 1e-10 * np.linalg.norm(b)
     assert not s._fun.sym_gmres
     s(A, b)  # and the LU from now on

@@ -76,7 +76,7 @@ class TimedSolver:
 
     @property
     def counts(self) -> dict[str, int]:
-        """Pardiso's factorisations, and the tangents solved by GMRES on their symmetric part's factor (SYM_GMRES)
+        """Pardiso's factorisations, and the tangents solved by GMRES on a cheaper factor (SYM_GMRES, SYM_GMRES_FACTOR)
         with the back-substitutions it took (substeps' included); {} for the other backends."""
         f = self._fun
         if not isinstance(f, _Pardiso):
@@ -267,13 +267,19 @@ def _single(M, b):
     return M32, np.asfortranarray(b, np.float32)
 
 
-# Frictional contact's non-symmetric tangent from SYM_GMRES_ROWS rows: GMRES, right-preconditioned by the LDL^T of
-# its symmetric part in double precision, instead of the LU. The friction's non-symmetric part is small, and the
+# Frictional contact's non-symmetric tangent from SYM_GMRES_ROWS rows: GMRES, right-preconditioned by a cheaper factor
+# than the double LU: the LU in single precision (SYM_GMRES_FACTOR = SINGLE_LU, the default since 2026-12-06) or the
+# LDL^T of the symmetric part in double precision (SYM_PART). The single LU has the double LU's fill in half the
+# bytes, and its one back-substitution is off only in a soft mode that GMRES restores in a few more: on the default
+# anatomical model's captured tangents 9 / 17 back-substitutions to 1e-10 against the symmetric part's 22 / 38; the
+# whole default contact run, back to back (docs/bench.md, "Frictional contact against bonded", 2026-12-06): the same
+# 14 Newton iterations, 624 -> 227 back-substitutions, solve 681 -> 460 s wall, peak 5.69 -> 6.13 GB. Before it:
+# the LDL^T of the symmetric part instead of the LU. The friction's non-symmetric part is small, and the
 # symmetric part's factor has half the LU's fill and flops: on the default anatomical model's captured tangents
 # (318,505 rows) LDL^T 18 s wall / 38 s CPU and 2.3 GB against the LU's 41 s / 78 s and 4.5 GB, then 25-58
 # back-substitutions of ~0.3 s to 1e-10. The whole default contact run, back to back: solve 843 -> 790 s wall,
 # 1,461 -> 1,067 s CPU, peak 9.44 -> 7.04 GiB, the same Newton iterations (docs/bench.md, "Frictional contact
-# against bonded"). In single precision the preconditioner loses a soft mode and GMRES stalls; below ~100k rows the
+# against bonded"). The symmetric part in single precision loses a soft mode and GMRES stalls; below ~100k rows the
 # LU is cheap against the back-substitutions; on the needle models the friction part is not small and GMRES stalls.
 # A tangent whose GMRES misses SYM_GMRES_MAXITER is solved by the LU, and so is every later one. GMRES runs as GCR
 # that keeps its directions (_Recycled): a substep's resolve() on the kept tangent starts from the Newton solve's and
@@ -295,6 +301,8 @@ SYM_GMRES_BACKWARD = 1e-14
 # 5.5-7.8 s against 1.2 s, and the same GMRES counts)
 SYM_PART_IPARM = {1: 1, 2: 2, 8: 0, 10: 8, 18: -1}
 SYM_PART = "symmetric part"  # _Pardiso's solver (mtype -2) for it
+SINGLE_LU = "single LU"  # _Pardiso's solver (mtype 11, iparm 28 = 1) for the tangent itself in single precision
+SYM_GMRES_FACTOR = SINGLE_LU  # GMRES's preconditioner: the single-precision LU, or the symmetric part's LDL^T
 
 
 class _Recycled:
@@ -409,7 +417,7 @@ class _Pardiso:
     (phase 33 only: modified-Newton substeps in fem.solve) until `release()` or the next call.
 
     With `single` the Cholesky is factored in single precision and refined by CG on the double tangent
-    (SINGLE); LDL^T and LU stay double.
+    (SINGLE); LDL^T and LU stay double, but for GMRES's preconditioner from SYM_GMRES_ROWS rows (SYM_GMRES_FACTOR).
     """
 
     def __init__(self, reuse: bool = True, single: bool = False):
@@ -421,6 +429,7 @@ class _Pardiso:
         self.reuse = reuse
         self.solvers = {m: PyPardisoSolver(mtype=m) for m in (2, -2, 11)}
         self.solvers[SYM_PART] = PyPardisoSolver(mtype=-2)  # a non-symmetric tangent's symmetric part (SYM_GMRES)
+        self.solvers[SINGLE_LU] = PyPardisoSolver(mtype=11)
         # Cholesky: MKL's parameters (iparm[0] = 0) add two steps of iterative refinement to every
         # solve, each a residual and a back-substitution: 0.088 -> 0.036 s CPU per solve without,
         # same relative residual (2.8e-11) on the needle model's tangent. With no pivot perturbed
@@ -432,8 +441,10 @@ class _Pardiso:
             self.solvers[11].set_iparm(i, v)
         for i, v in SYM_PART_IPARM.items():
             self.solvers[SYM_PART].set_iparm(i, v)
+        for i, v in LU_IPARM.items():
+            self.solvers[SINGLE_LU].set_iparm(i, v)
         self.sym_gmres = True  # non-symmetric tangents by SYM_GMRES until one misses, then by the LU
-        self.gmres_tangent = None  # the tangent whose symmetric part's factor is kept, for resolve()
+        self.gmres_tangent = None  # the tangent whose SYM_GMRES factor is kept, for resolve()
         self.factorisations = 0
         self.gmres_solves = 0  # tangents solved by SYM_GMRES, and their back-substitutions (resolve()'s included)
         self.gmres_back_substitutions = 0
@@ -489,7 +500,7 @@ class _Pardiso:
         if self.kept is None:
             return None
         ps, M = self.kept
-        if self.gmres_tangent is not None:  # the kept factor is the tangent's symmetric part's (SYM_GMRES)
+        if self.gmres_tangent is not None:  # the kept factor is SYM_GMRES_FACTOR's of the tangent
             x, used = self.gmres_tangent.solve(b, SYM_GMRES_RESOLVE_RTOL, SYM_GMRES_MAXITER)
             self.gmres_back_substitutions += used
             return x
@@ -527,22 +538,26 @@ class _Pardiso:
             if x is not None:
                 return x
             self.sym_gmres = False  # missed: the LU for this tangent and every later one
-            self._forget(SYM_PART)
+            self._forget(SYM_GMRES_FACTOR)
         return self._solve(-2 if sym else 11, M, b)
 
     def _sym_gmres(self, M, b):
-        """x = M^-1 b (M non-symmetric, CSR) by GMRES (GCR, _Recycled) preconditioned with the LDL^T of M's
-        symmetric part (SYM_GMRES); None, the factor freed, if it does not reach SYM_GMRES_RTOL in SYM_GMRES_MAXITER
-        back-substitutions. With `keep` the factor, M and the directions stay for resolve()."""
+        """x = M^-1 b (M non-symmetric, CSR) by GMRES (GCR, _Recycled) preconditioned with M's LU in single precision
+        or the LDL^T of M's symmetric part (SYM_GMRES_FACTOR); None, the factor freed, if it does not reach
+        SYM_GMRES_RTOL in SYM_GMRES_MAXITER back-substitutions. With `keep` the factor, M and the directions stay for
+        resolve()."""
         import scipy.sparse as sp
         from pypardiso.pardiso_wrapper import PyPardisoError
 
-        S = sp.triu(M + M.T, format="csr")
-        S.data *= 0.5
-        S.sort_indices()
+        if SYM_GMRES_FACTOR == SINGLE_LU:
+            S = M
+        else:
+            S = sp.triu(M + M.T, format="csr")
+            S.data *= 0.5
+            S.sort_indices()
         keep, self.keep = self.keep, True
         try:
-            first = self._solve(SYM_PART, S, b)
+            first = self._solve(SYM_GMRES_FACTOR, S, b)
         except PyPardisoError:  # e.g. singular: the LU will say so
             return None
         finally:
@@ -590,11 +605,11 @@ class _Pardiso:
                 ps.free_memory(everything=True)
         if fit is None:
             self.pattern.pop(mtype, None)
-            if mtype in (2, 11, SYM_PART):  # these iparm are ours (iparm 1 = 1); LDL^T keeps MKL's
+            if mtype in (2, 11, SYM_PART, SINGLE_LU):  # these iparm are ours (iparm 1 = 1); LDL^T keeps MKL's
                 perm = nested_dissection(M) if ORDERING == "metis" else None
                 ps.perm = np.zeros(0, np.int32) if perm is None else perm + 1
                 ps.set_iparm(5, 0 if perm is None else 1)  # 1: the fill-reducing ordering is ps.perm
-            ps.set_iparm(28, int(mtype == 2 and self.single))  # the factor's precision (and a, b, x's)
+            ps.set_iparm(28, int((mtype == 2 and self.single) or mtype == SINGLE_LU))  # the factor's precision (and a, b, x's)
         single = bool(ps.iparm[27])
         F, Fb = _single(M, b) if single else (M, b)  # what Pardiso reads (float32 values if single)
         if fit is None:
@@ -607,7 +622,9 @@ class _Pardiso:
             ps.set_phase(22)
             ps._call_pardiso(F, Fb)
             self.factorisations += 1
-            if single:
+            if mtype == SINGLE_LU:  # GMRES's preconditioner (_sym_gmres): one back-substitution, in double
+                x = self._back(ps, F)(b)
+            elif single:
                 x = _pcg(_symmetric(M), self._back(ps, F), b, SINGLE_RTOL, SINGLE_MAXITER)
             else:
                 ps.set_phase(33)
