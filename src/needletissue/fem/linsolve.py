@@ -609,7 +609,8 @@ class _Pardiso:
                 perm = nested_dissection(M) if ORDERING == "metis" else None
                 ps.perm = np.zeros(0, np.int32) if perm is None else perm + 1
                 ps.set_iparm(5, 0 if perm is None else 1)  # 1: the fill-reducing ordering is ps.perm
-            ps.set_iparm(28, int((mtype == 2 and self.single) or mtype == SINGLE_LU))  # the factor's precision (and a, b, x's)
+            # the factor's precision (and a, b, x's): single for a Cholesky refined by CG and for GMRES's LU
+            ps.set_iparm(28, int((mtype == 2 and self.single) or mtype == SINGLE_LU))
         single = bool(ps.iparm[27])
         F, Fb = _single(M, b) if single else (M, b)  # what Pardiso reads (float32 values if single)
         if fit is None:
