@@ -435,14 +435,9 @@ class _Pardiso:
         # same relative residual (2.8e-11) on the needle model's tangent. With no pivot perturbed
         # (positive definite) refinement has nothing to repair; the LU likewise (LU_IPARM); LDL^T keeps MKL's
         # defaults.
-        for i, v in CHOLESKY_IPARM.items():
-            self.solvers[2].set_iparm(i, v)
-        for i, v in LU_IPARM.items():
-            self.solvers[11].set_iparm(i, v)
-        for i, v in SYM_PART_IPARM.items():
-            self.solvers[SYM_PART].set_iparm(i, v)
-        for i, v in LU_IPARM.items():
-            self.solvers[SINGLE_LU].set_iparm(i, v)
+        for key, iparm in ((2, CHOLESKY_IPARM), (11, LU_IPARM), (SINGLE_LU, LU_IPARM), (SYM_PART, SYM_PART_IPARM)):
+            for i, v in iparm.items():
+                self.solvers[key].set_iparm(i, v)
         self.sym_gmres = True  # non-symmetric tangents by SYM_GMRES until one misses, then by the LU
         self.gmres_tangent = None  # the tangent whose SYM_GMRES factor is kept, for resolve()
         self.factorisations = 0
